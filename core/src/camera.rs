@@ -1,0 +1,201 @@
+//! Pinhole cameras and poses. OpenCV axes (x right, y down, z forward); poses are
+//! camera-to-world. Pixel (u, v) with integer u, v is a pixel centre. Ray directions are not
+//! normalised: in camera space d = ((u - cx)/fx, (v - cy)/fy, 1), so the sample parameter t
+//! along a ray is camera-z depth.
+
+/// Pinhole intrinsics of an image of `width` x `height` pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Intrinsics {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+}
+
+impl Intrinsics {
+    /// Intrinsics after resizing the image to `width` x `height` (pixel centres kept at
+    /// integers: c' = (c + 0.5) * s - 0.5).
+    pub fn resized(&self, width: u32, height: u32) -> Self {
+        let sx = width as f32 / self.width as f32;
+        let sy = height as f32 / self.height as f32;
+        Self {
+            width,
+            height,
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            cx: (self.cx + 0.5) * sx - 0.5,
+            cy: (self.cy + 0.5) * sy - 0.5,
+        }
+    }
+
+    /// Intrinsics after cropping `edge` pixels from every border.
+    pub fn cropped(&self, edge: u32) -> Self {
+        Self {
+            width: self.width.saturating_sub(2 * edge),
+            height: self.height.saturating_sub(2 * edge),
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx - edge as f32,
+            cy: self.cy - edge as f32,
+        }
+    }
+
+    /// Camera-space direction (z = 1) through pixel coordinates (u, v).
+    #[inline]
+    pub fn direction(&self, u: f32, v: f32) -> [f32; 3] {
+        [(u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0]
+    }
+
+    /// Projects a camera-space point; returns (u, v, z). z <= 0 means behind the camera.
+    #[inline]
+    pub fn project(&self, p: [f32; 3]) -> (f32, f32, f32) {
+        let z = p[2];
+        (self.fx * p[0] / z + self.cx, self.fy * p[1] / z + self.cy, z)
+    }
+}
+
+/// A rigid camera-to-world transform, stored as the top 3x4 of the row-major 4x4 matrix.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Pose {
+    pub m: [[f32; 4]; 3],
+}
+
+impl Pose {
+    pub const IDENTITY: Pose = Pose {
+        m: [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ],
+    };
+
+    /// Camera centre in world coordinates.
+    #[inline]
+    pub fn origin(&self) -> [f32; 3] {
+        [self.m[0][3], self.m[1][3], self.m[2][3]]
+    }
+
+    /// Rotates a camera-space vector into the world.
+    #[inline]
+    pub fn rotate(&self, d: [f32; 3]) -> [f32; 3] {
+        let m = &self.m;
+        [
+            m[0][0] * d[0] + m[0][1] * d[1] + m[0][2] * d[2],
+            m[1][0] * d[0] + m[1][1] * d[1] + m[1][2] * d[2],
+            m[2][0] * d[0] + m[2][1] * d[1] + m[2][2] * d[2],
+        ]
+    }
+
+    /// Transforms a camera-space point into the world.
+    #[inline]
+    pub fn transform(&self, p: [f32; 3]) -> [f32; 3] {
+        let r = self.rotate(p);
+        [r[0] + self.m[0][3], r[1] + self.m[1][3], r[2] + self.m[2][3]]
+    }
+
+    /// Transforms a world point into camera space (inverse of a rigid transform: R^T (p - t)).
+    #[inline]
+    pub fn inverse_transform(&self, p: [f32; 3]) -> [f32; 3] {
+        let m = &self.m;
+        let q = [p[0] - m[0][3], p[1] - m[1][3], p[2] - m[2][3]];
+        [
+            m[0][0] * q[0] + m[1][0] * q[1] + m[2][0] * q[2],
+            m[0][1] * q[0] + m[1][1] * q[1] + m[2][1] * q[2],
+            m[0][2] * q[0] + m[1][2] * q[1] + m[2][2] * q[2],
+        ]
+    }
+
+    /// World-space ray (origin, unnormalised direction whose camera-z component is 1) through
+    /// pixel (u, v).
+    #[inline]
+    pub fn ray(&self, k: &Intrinsics, u: f32, v: f32) -> ([f32; 3], [f32; 3]) {
+        (self.origin(), self.rotate(k.direction(u, v)))
+    }
+
+    /// Whether the rotation part is orthonormal with determinant +1 (within `tol`) and every
+    /// entry is finite.
+    pub fn is_rigid(&self, tol: f32) -> bool {
+        let m = &self.m;
+        let mut finite = true;
+        for row in m {
+            for x in row {
+                finite &= x.is_finite();
+            }
+        }
+        if !finite {
+            return false;
+        }
+        let col = |j: usize| [m[0][j], m[1][j], m[2][j]];
+        let dot = |a: [f32; 3], b: [f32; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let (c0, c1, c2) = (col(0), col(1), col(2));
+        let cross = [
+            c0[1] * c1[2] - c0[2] * c1[1],
+            c0[2] * c1[0] - c0[0] * c1[2],
+            c0[0] * c1[1] - c0[1] * c1[0],
+        ];
+        let det = dot(cross, c2);
+        (dot(c0, c0) - 1.0).abs() < tol
+            && (dot(c1, c1) - 1.0).abs() < tol
+            && (dot(c2, c2) - 1.0).abs() < tol
+            && dot(c0, c1).abs() < tol
+            && dot(c0, c2).abs() < tol
+            && dot(c1, c2).abs() < tol
+            && (det - 1.0).abs() < tol
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn project_inverts_ray() {
+        let k = Intrinsics {
+            width: 640,
+            height: 480,
+            fx: 525.0,
+            fy: 525.0,
+            cx: 319.5,
+            cy: 239.5,
+        };
+        // 90 degrees about y, translated.
+        let pose = Pose {
+            m: [
+                [0.0, 0.0, 1.0, 1.0],
+                [0.0, 1.0, 0.0, 2.0],
+                [-1.0, 0.0, 0.0, 3.0],
+            ],
+        };
+        assert!(pose.is_rigid(1e-5));
+        let (o, d) = pose.ray(&k, 100.0, 50.0);
+        let t = 2.5;
+        let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+        let pc = pose.inverse_transform(p);
+        let (u, v, z) = k.project(pc);
+        assert!((u - 100.0).abs() < 1e-3 && (v - 50.0).abs() < 1e-3 && (z - t).abs() < 1e-5);
+    }
+
+    #[test]
+    fn resize_keeps_pixel_centres() {
+        let k = Intrinsics {
+            width: 1200,
+            height: 680,
+            fx: 600.0,
+            fy: 600.0,
+            cx: 599.5,
+            cy: 339.5,
+        };
+        let h = k.resized(600, 340);
+        assert_eq!((h.fx, h.cx, h.cy), (300.0, 299.5, 169.5));
+        let c = k.cropped(10);
+        assert_eq!((c.width, c.height, c.cx, c.cy), (1180, 660, 589.5, 329.5));
+        assert!(!Pose {
+            m: [[2.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]
+        }
+        .is_rigid(1e-3));
+    }
+}

@@ -1,0 +1,2 @@
+//! rust-gpu compute entry points (under construction).
+#![cfg_attr(target_arch = "spirv", no_std)]

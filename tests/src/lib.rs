@@ -1,0 +1,1 @@
+//! Shared helpers for himap's cross-crate tests.
