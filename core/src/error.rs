@@ -50,3 +50,5 @@ pub fn check_len(what: &'static str, got: usize, expected: usize) -> Result<(), 
         })
     }
 }
+
+impl core::error::Error for Error {}

@@ -21,8 +21,11 @@ pub mod grid;
 pub mod loss;
 pub mod math;
 pub mod mlp;
+pub mod model;
 pub mod render;
 pub mod rng;
+pub mod step;
+pub mod warp;
 
 pub use error::Error;
 

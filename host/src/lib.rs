@@ -1,2 +1,12 @@
 //! himap host library: dataset loaders, synthetic scenes, evaluation metrics, mesh extraction,
 //! file outputs and a multi-threaded CPU backend around `himap-core`.
+
+pub mod dataset;
+pub mod metrics;
+pub mod synth;
+pub mod mesh;
+pub mod eval;
+
+pub mod backend;
+pub mod dump;
+pub mod train_demo;

@@ -1,1 +1,215 @@
-//! Vulkan backend for himap (under construction).
+//! Vulkan backend for himap (under construction: for now the compiled shader module and its
+//! metadata).
+//!
+//! `build.rs` compiles `../shaders` with rust-gpu to one SPIR-V 1.5 module for Vulkan 1.2,
+//! decorates every float operation `NoContraction` and validates it. Pipelines built from it
+//! need the device features `shaderInt64`, `shaderBufferInt64Atomics` and `vulkanMemoryModel`.
+
+/// The post-processed SPIR-V module with every entry point (little-endian words; use
+/// `ash::util::read_spv` to get aligned `u32`s).
+pub const SHADERS_SPV: &[u8] = include_bytes!(env!("HIMAP_SHADERS_SPV"));
+
+mod shader_info {
+    include!(concat!(env!("OUT_DIR"), "/shader_info.rs"));
+}
+pub use shader_info::{ENTRY_POINTS, NO_CONTRACTION_DECORATIONS};
+
+/// Entry point names (see `shaders/src/lib.rs` for their bindings).
+pub mod entry {
+    pub const PROBE: &str = "probe_cs";
+    pub const FIXED_ACCUMULATE: &str = "fixed_accumulate_cs";
+    pub const MLP_FORWARD: &str = "mlp_forward_cs";
+    /// Only with the `grid` feature of `himap-shaders` (see `build.rs`).
+    pub const GRID_FORWARD: &str = "grid_forward_cs";
+}
+
+/// Workgroup size (x) of every entry point.
+pub const WORKGROUP_SIZE: u32 = 64;
+
+/// Layouts and scene constants as `u32` words, the exact encoding the shaders decode (one
+/// source file shared with `himap-shaders`).
+#[path = "../../shaders/src/words.rs"]
+pub mod words;
+
+/// The module as `u32` words.
+pub fn shader_words() -> Vec<u32> {
+    SHADERS_SPV
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use himap_core::camera::{Intrinsics, Pose};
+    use himap_core::grid::{GridConfig, GridKind, GridLayout};
+    use himap_core::Aabb;
+    use rspirv::dr::{Module, Operand};
+    use rspirv::spirv::{Capability, Decoration, ExecutionMode, Op};
+    use std::collections::{BTreeMap, BTreeSet};
+
+    fn module() -> Module {
+        rspirv::dr::load_words(shader_words()).expect("module parses")
+    }
+
+    #[test]
+    fn module_has_entry_points_and_capabilities() {
+        let m = module();
+        let mut names = BTreeMap::new();
+        for e in &m.entry_points {
+            match (&e.operands[0], &e.operands[1], &e.operands[2]) {
+                (
+                    Operand::ExecutionModel(rspirv::spirv::ExecutionModel::GLCompute),
+                    Operand::IdRef(id),
+                    Operand::LiteralString(s),
+                ) => {
+                    names.insert(*id, s.clone());
+                }
+                other => panic!("unexpected entry point {other:?}"),
+            }
+        }
+        let listed: BTreeSet<&str> = names.values().map(|s| s.as_str()).collect();
+        for want in [entry::PROBE, entry::FIXED_ACCUMULATE, entry::MLP_FORWARD] {
+            assert!(listed.contains(want), "{want} missing from {listed:?}");
+            assert!(ENTRY_POINTS.contains(&want));
+        }
+        assert_eq!(listed.len(), ENTRY_POINTS.len());
+        // Every entry point runs 64 x 1 x 1 invocations per workgroup.
+        let mut sized = BTreeSet::new();
+        for x in &m.execution_modes {
+            if let [Operand::IdRef(id), Operand::ExecutionMode(ExecutionMode::LocalSize), Operand::LiteralBit32(a), Operand::LiteralBit32(b), Operand::LiteralBit32(c)] =
+                x.operands.as_slice()
+            {
+                assert_eq!((*a, *b, *c), (WORKGROUP_SIZE, 1, 1), "{}", names[id]);
+                sized.insert(*id);
+            }
+        }
+        assert_eq!(sized.len(), names.len());
+        let caps: BTreeSet<Capability> = m
+            .capabilities
+            .iter()
+            .filter_map(|c| match c.operands[0] {
+                Operand::Capability(c) => Some(c),
+                _ => None,
+            })
+            .collect();
+        for c in [
+            Capability::Shader,
+            Capability::Int64,
+            Capability::Int64Atomics,
+            Capability::VulkanMemoryModel,
+        ] {
+            assert!(caps.contains(&c), "{c:?} missing from {caps:?}");
+        }
+    }
+
+    #[test]
+    fn every_float_op_is_no_contraction_and_no_fma() {
+        let m = module();
+        let decorated: BTreeSet<u32> = m
+            .annotations
+            .iter()
+            .filter(|a| {
+                a.class.opcode == Op::Decorate
+                    && a.operands[1] == Operand::Decoration(Decoration::NoContraction)
+            })
+            .map(|a| match a.operands[0] {
+                Operand::IdRef(id) => id,
+                _ => unreachable!(),
+            })
+            .collect();
+        let mut float_ops = 0;
+        let mut glsl_fma = 0;
+        let mut frem = 0;
+        for f in &m.functions {
+            for b in &f.blocks {
+                for i in &b.instructions {
+                    match i.class.opcode {
+                        Op::FAdd | Op::FSub | Op::FMul | Op::FDiv | Op::FNegate | Op::Dot => {
+                            float_ops += 1;
+                            let id = i.result_id.unwrap();
+                            assert!(decorated.contains(&id), "%{id} {:?} undecorated", i);
+                        }
+                        // GLSL.std.450 Fma is extended instruction 50.
+                        Op::ExtInst
+                            if i.operands.get(1) == Some(&Operand::LiteralExtInstInteger(50)) =>
+                        {
+                            glsl_fma += 1
+                        }
+                        Op::FRem | Op::FMod => frem += 1,
+                        _ => {}
+                    }
+                }
+            }
+        }
+        assert!(float_ops > 0);
+        assert!(decorated.len() >= float_ops);
+        assert_eq!(NO_CONTRACTION_DECORATIONS, decorated.len());
+        // build.rs rejects these (and the approximate GLSL.std.450 built-ins).
+        assert_eq!((glsl_fma, frem), (0, 0));
+    }
+
+    #[test]
+    fn fixed_accumulate_uses_64_bit_atomics() {
+        let m = module();
+        let i64_types: BTreeSet<u32> = m
+            .types_global_values
+            .iter()
+            .filter(|t| {
+                t.class.opcode == Op::TypeInt
+                    && t.operands.first() == Some(&Operand::LiteralBit32(64))
+            })
+            .filter_map(|t| t.result_id)
+            .collect();
+        let atomics: Vec<_> = m
+            .functions
+            .iter()
+            .flat_map(|f| f.blocks.iter())
+            .flat_map(|b| b.instructions.iter())
+            .filter(|i| i.class.opcode == Op::AtomicIAdd)
+            .collect();
+        assert!(!atomics.is_empty());
+        for a in atomics {
+            assert!(i64_types.contains(&a.result_type.unwrap()), "{a:?}");
+        }
+    }
+
+    #[test]
+    fn words_round_trip() {
+        let aabb = Aabb::new([-1.0, -2.0, 0.5], [3.0, 1.0, 2.75]);
+        for kind in [GridKind::Factorized, GridKind::Dense] {
+            let g = GridLayout::new(&GridConfig::hi_map_geometry().with_kind(kind), aabb).unwrap();
+            let mut w = [0u32; words::GRID_LAYOUT];
+            words::grid_layout_to_words(&g, &mut w, 0);
+            assert_eq!(words::grid_layout_from_words(&w, 0), g);
+            // A short buffer reads as zeros instead of panicking.
+            let short = words::grid_layout_from_words(&w[..5], 0);
+            assert_eq!((short.levels, short.param_count), (g.levels, 0));
+        }
+        let pose = Pose {
+            m: [
+                [0.0, 0.0, 1.0, 1.5],
+                [0.0, 1.0, 0.0, -2.0],
+                [-1.0, 0.0, 0.0, 3.25],
+            ],
+        };
+        let k = Intrinsics {
+            width: 1200,
+            height: 680,
+            fx: 600.0,
+            fy: 600.5,
+            cx: 599.5,
+            cy: 339.5,
+        };
+        let mut w = [0u32; words::AABB + words::POSE + words::INTRINSICS];
+        words::aabb_to_words(&aabb, &mut w, 0);
+        words::pose_to_words(&pose, &mut w, 6);
+        words::intrinsics_to_words(&k, &mut w, 18);
+        assert_eq!(words::aabb_from_words(&w, 0), aabb);
+        assert_eq!(words::pose_from_words(&w, 6), pose);
+        assert_eq!(words::intrinsics_from_words(&w, 18), k);
+        assert_eq!(w[0], (-1.0f32).to_bits());
+        assert_eq!(w[18], 1200);
+    }
+}

@@ -1,0 +1,629 @@
+//! The Hi-Map field: two feature grids, two decoders and the renderer, evaluated per sample and
+//! per ray, forward and backward. This is the per-ray kernel that every backend runs: the
+//! single-threaded CPU step in [`crate::step`], the host's multi-threaded backend and the
+//! Vulkan shaders all call [`ray_forward`] and [`ray_train`].
+//!
+//! Per sample at world position p (grid coordinates p̂ = `Aabb::normalize(p)` in [-1, 1]):
+//! - geometry: `s = MLP_g(F_g(p))[0]`, the signed distance in metres (linear output);
+//! - appearance (dual path): `rgb = sigmoid(MLP_a([p̂, F_a(p)]))`; with `dual_path` off the
+//!   position input is dropped (`MLP_a(F_a(p))`), the paper's ablation.
+//!
+//! Parameters live in five groups ([`Group`]), each a flat `f32` buffer described by the
+//! layouts in [`ModelLayout`]. Gradients go to a [`ModelGradSink`], one call per contribution.
+
+use crate::grid::{self, GridConfig, GridLayout, MAX_GRID_FEATURES};
+use crate::math;
+use crate::mlp::{self, MlpLayout, MlpScratch, MAX_OUT, MAX_WIDTH};
+use crate::render::{self, RayOutput, RenderMode, MAX_SAMPLES};
+use crate::{Aabb, Error, GradSink, ParamRead};
+
+/// The parameter groups, in buffer order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[repr(u32)]
+pub enum Group {
+    GeometryGrid = 0,
+    AppearanceGrid = 1,
+    GeometryMlp = 2,
+    AppearanceMlp = 3,
+    Beta = 4,
+}
+
+/// Number of parameter groups.
+pub const NUM_GROUPS: usize = 5;
+
+impl Group {
+    pub const ALL: [Group; NUM_GROUPS] = [
+        Group::GeometryGrid,
+        Group::AppearanceGrid,
+        Group::GeometryMlp,
+        Group::AppearanceMlp,
+        Group::Beta,
+    ];
+
+    /// Tensor-name friendly name.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Group::GeometryGrid => "geometry_grid",
+            Group::AppearanceGrid => "appearance_grid",
+            Group::GeometryMlp => "geometry_mlp",
+            Group::AppearanceMlp => "appearance_mlp",
+            Group::Beta => "beta",
+        }
+    }
+}
+
+/// Everything that fixes the shape and behaviour of the field.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ModelConfig {
+    /// Scene box in world coordinates (metres).
+    pub aabb: Aabb,
+    pub geometry_grid: GridConfig,
+    pub appearance_grid: GridConfig,
+    /// Hidden units per decoder layer (paper: 32).
+    pub hidden: u32,
+    /// Hidden ReLU layers per decoder (the paper's "2 layers": two hidden layers + output).
+    pub hidden_layers: u32,
+    /// Dual path: the appearance decoder also sees the normalised position.
+    pub dual_path: bool,
+    pub render_mode: RenderMode,
+    /// Samples per ray (stratified on [near, far] of the ray's box intersection).
+    pub samples: u32,
+    /// Initial beta of the SDF-to-density proxy (paper: 10).
+    pub beta_init: f32,
+    /// Standard deviation of the N(0, std^2) grid initialisation.
+    pub grid_init_std: f32,
+    /// Initial bias of the SDF output (metres); a positive value starts the field as free space.
+    pub sdf_bias_init: f32,
+}
+
+impl ModelConfig {
+    /// The paper's field over `aabb`: geometry 6 levels (64..2 cm, 2 channels), appearance
+    /// 2 levels (24 cm, 2 cm, 32 channels), 32 hidden units, two hidden layers, dual path,
+    /// SDF-as-density with beta 10, 48 samples per ray.
+    pub const fn paper(aabb: Aabb) -> Self {
+        Self {
+            aabb,
+            geometry_grid: GridConfig::hi_map_geometry(),
+            appearance_grid: GridConfig::hi_map_appearance(),
+            hidden: 32,
+            hidden_layers: 2,
+            dual_path: true,
+            render_mode: RenderMode::SdfDensity,
+            samples: 48,
+            beta_init: 10.0,
+            grid_init_std: 0.01,
+            sdf_bias_init: 0.0,
+        }
+    }
+}
+
+/// The shapes and offsets of all parameter groups.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ModelLayout {
+    pub config: ModelConfig,
+    pub geometry_grid: GridLayout,
+    pub appearance_grid: GridLayout,
+    pub geometry_mlp: MlpLayout,
+    pub appearance_mlp: MlpLayout,
+}
+
+impl ModelLayout {
+    /// Builds and validates every layout.
+    pub fn new(config: &ModelConfig) -> Result<Self, Error> {
+        if !config.aabb.is_valid() {
+            return Err(Error::InvalidConfig("scene box must be finite with positive extent"));
+        }
+        if config.samples == 0 || config.samples as usize > MAX_SAMPLES {
+            return Err(Error::Capacity {
+                what: "samples per ray",
+                needed: config.samples as u64,
+                capacity: MAX_SAMPLES as u64,
+            });
+        }
+        if !(config.beta_init.is_finite() && config.beta_init > 0.0) {
+            return Err(Error::InvalidConfig("beta_init must be finite and positive"));
+        }
+        let geometry_grid = GridLayout::new(&config.geometry_grid, config.aabb)?;
+        let appearance_grid = GridLayout::new(&config.appearance_grid, config.aabb)?;
+        let geo_in = geometry_grid.feature_dim() as u32;
+        let app_in = appearance_grid.feature_dim() as u32 + if config.dual_path { 3 } else { 0 };
+        if app_in as usize > MAX_WIDTH {
+            return Err(Error::Capacity {
+                what: "appearance decoder inputs",
+                needed: app_in as u64,
+                capacity: MAX_WIDTH as u64,
+            });
+        }
+        let geometry_mlp = MlpLayout::new(geo_in, config.hidden, config.hidden_layers, 1)?;
+        let appearance_mlp = MlpLayout::new(app_in, config.hidden, config.hidden_layers, 3)?;
+        Ok(Self {
+            config: *config,
+            geometry_grid,
+            appearance_grid,
+            geometry_mlp,
+            appearance_mlp,
+        })
+    }
+
+    /// Number of `f32` parameters of a group.
+    pub fn group_len(&self, g: Group) -> usize {
+        match g {
+            Group::GeometryGrid => self.geometry_grid.param_count as usize,
+            Group::AppearanceGrid => self.appearance_grid.param_count as usize,
+            Group::GeometryMlp => self.geometry_mlp.param_count as usize,
+            Group::AppearanceMlp => self.appearance_mlp.param_count as usize,
+            Group::Beta => 1,
+        }
+    }
+
+    /// Lengths of all groups, in [`Group::ALL`] order.
+    pub fn group_lens(&self) -> [usize; NUM_GROUPS] {
+        let mut out = [0; NUM_GROUPS];
+        let mut i = 0;
+        while i < NUM_GROUPS {
+            out[i] = self.group_len(Group::ALL[i]);
+            i += 1;
+        }
+        out
+    }
+
+    /// Total parameter count.
+    pub fn param_count(&self) -> usize {
+        let l = self.group_lens();
+        l[0] + l[1] + l[2] + l[3] + l[4]
+    }
+
+    /// Initialises one group's parameters (deterministic for `seed`).
+    pub fn init_group(&self, g: Group, params: &mut [f32], seed: u32) -> Result<(), Error> {
+        crate::error::check_len(g.name(), params.len(), self.group_len(g))?;
+        let s = seed.wrapping_mul(16).wrapping_add(g as u32);
+        match g {
+            Group::GeometryGrid => {
+                grid::grid_init(&self.geometry_grid, params, s, self.config.grid_init_std)
+            }
+            Group::AppearanceGrid => {
+                grid::grid_init(&self.appearance_grid, params, s, self.config.grid_init_std)
+            }
+            Group::GeometryMlp => {
+                mlp::mlp_init(&self.geometry_mlp, params, s)?;
+                let out_bias = self.geometry_mlp.bias_offsets[self.geometry_mlp.hidden_layers as usize];
+                params[out_bias as usize] += self.config.sdf_bias_init;
+                Ok(())
+            }
+            Group::AppearanceMlp => mlp::mlp_init(&self.appearance_mlp, params, s),
+            Group::Beta => {
+                params[0] = self.config.beta_init;
+                Ok(())
+            }
+        }
+    }
+}
+
+/// Read access to the five parameter groups (beta is group 4, one value).
+pub struct Params<'a, P: ParamRead + ?Sized> {
+    pub geometry_grid: &'a P,
+    pub appearance_grid: &'a P,
+    pub geometry_mlp: &'a P,
+    pub appearance_mlp: &'a P,
+    pub beta: f32,
+}
+
+/// Receives gradient contributions for all groups.
+pub trait ModelGradSink {
+    fn add(&mut self, group: Group, i: usize, g: f32);
+}
+
+/// Adapts a [`ModelGradSink`] to one group's [`GradSink`].
+pub struct GroupSink<'s, S: ModelGradSink> {
+    pub inner: &'s mut S,
+    pub group: Group,
+}
+
+impl<S: ModelGradSink> GradSink for GroupSink<'_, S> {
+    #[inline(always)]
+    fn add(&mut self, i: usize, g: f32) {
+        self.inner.add(self.group, i, g);
+    }
+}
+
+/// One training or rendering ray: world origin, unnormalised direction whose camera-z
+/// component is 1 (so t is camera depth), and its targets.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C)]
+pub struct Ray {
+    pub origin: [f32; 3],
+    pub dir: [f32; 3],
+    /// Target colour in [0, 1].
+    pub target: [f32; 3],
+    /// Target depth (camera z, metres); <= 0 means none.
+    pub target_depth: f32,
+}
+
+/// Per-ray samples and field values produced by [`ray_forward`].
+pub struct RayCache {
+    pub n: usize,
+    pub t: [f32; MAX_SAMPLES],
+    pub sdf: [f32; MAX_SAMPLES],
+    pub rgb: [[f32; 3]; MAX_SAMPLES],
+    pub out: RayOutput,
+}
+
+impl RayCache {
+    pub const fn new() -> Self {
+        Self {
+            n: 0,
+            t: [0.0; MAX_SAMPLES],
+            sdf: [0.0; MAX_SAMPLES],
+            rgb: [[0.0; 3]; MAX_SAMPLES],
+            out: RayOutput::zeroed(),
+        }
+    }
+}
+
+impl Default for RayCache {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Scratch space for one sample's evaluation.
+pub struct SampleScratch {
+    pub geo_feat: [f32; MAX_GRID_FEATURES],
+    pub app_feat: [f32; MAX_GRID_FEATURES],
+    pub mlp_in: [f32; MAX_WIDTH],
+    pub mlp: MlpScratch,
+    pub mlp_out: [f32; MAX_OUT],
+}
+
+impl SampleScratch {
+    pub const fn new() -> Self {
+        Self {
+            geo_feat: [0.0; MAX_GRID_FEATURES],
+            app_feat: [0.0; MAX_GRID_FEATURES],
+            mlp_in: [0.0; MAX_WIDTH],
+            mlp: MlpScratch::new(),
+            mlp_out: [0.0; MAX_OUT],
+        }
+    }
+}
+
+impl Default for SampleScratch {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+#[inline(always)]
+fn geometry_input(layout: &ModelLayout, s: &mut SampleScratch) {
+    let n = layout.geometry_grid.feature_dim();
+    let mut i = 0;
+    while i < MAX_WIDTH {
+        s.mlp_in[i] = if i < n { s.geo_feat[i] } else { 0.0 };
+        i += 1;
+    }
+}
+
+#[inline(always)]
+fn appearance_input(layout: &ModelLayout, pn: [f32; 3], s: &mut SampleScratch) -> usize {
+    let n = layout.appearance_grid.feature_dim();
+    let off = if layout.config.dual_path { 3 } else { 0 };
+    let mut i = 0;
+    while i < MAX_WIDTH {
+        s.mlp_in[i] = if i < off {
+            pn[i]
+        } else if i < off + n {
+            s.app_feat[i - off]
+        } else {
+            0.0
+        };
+        i += 1;
+    }
+    off
+}
+
+/// Signed distance (metres) at a world point.
+pub fn sdf_at<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    p: [f32; 3],
+    s: &mut SampleScratch,
+) -> f32 {
+    grid::grid_forward(&layout.geometry_grid, params.geometry_grid, p, &mut s.geo_feat);
+    geometry_input(layout, s);
+    mlp::mlp_forward(
+        &layout.geometry_mlp,
+        params.geometry_mlp,
+        &s.mlp_in,
+        &mut s.mlp,
+        &mut s.mlp_out,
+    );
+    s.mlp_out[0]
+}
+
+/// Colour in [0, 1] at a world point.
+pub fn color_at<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    p: [f32; 3],
+    s: &mut SampleScratch,
+) -> [f32; 3] {
+    grid::grid_forward(&layout.appearance_grid, params.appearance_grid, p, &mut s.app_feat);
+    let pn = layout.config.aabb.normalize(p);
+    appearance_input(layout, pn, s);
+    mlp::mlp_forward(
+        &layout.appearance_mlp,
+        params.appearance_mlp,
+        &s.mlp_in,
+        &mut s.mlp,
+        &mut s.mlp_out,
+    );
+    [
+        math::sigmoid(s.mlp_out[0]),
+        math::sigmoid(s.mlp_out[1]),
+        math::sigmoid(s.mlp_out[2]),
+    ]
+}
+
+/// Backward of [`sdf_at`]: contributions to the geometry grid and MLP.
+pub fn sdf_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    p: [f32; 3],
+    d_sdf: f32,
+    s: &mut SampleScratch,
+    sink: &mut S,
+) {
+    // Recompute the forward activations (cheaper than storing them per sample).
+    sdf_at(layout, params, p, s);
+    let mut d_out = [0.0f32; MAX_OUT];
+    d_out[0] = d_sdf;
+    let mut d_in = [0.0f32; MAX_WIDTH];
+    {
+        let mut gs = GroupSink {
+            inner: sink,
+            group: Group::GeometryMlp,
+        };
+        mlp::mlp_backward(
+            &layout.geometry_mlp,
+            params.geometry_mlp,
+            &s.mlp,
+            &d_out,
+            &mut d_in,
+            &mut gs,
+        );
+    }
+    let n = layout.geometry_grid.feature_dim();
+    let mut d_feat = [0.0f32; MAX_GRID_FEATURES];
+    let mut i = 0;
+    while i < n {
+        d_feat[i] = d_in[i];
+        i += 1;
+    }
+    let mut gs = GroupSink {
+        inner: sink,
+        group: Group::GeometryGrid,
+    };
+    grid::grid_backward(&layout.geometry_grid, params.geometry_grid, p, &d_feat, &mut gs);
+}
+
+/// Backward of [`color_at`]: contributions to the appearance grid and MLP.
+pub fn color_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    p: [f32; 3],
+    d_rgb: [f32; 3],
+    s: &mut SampleScratch,
+    sink: &mut S,
+) {
+    let rgb = color_at(layout, params, p, s);
+    let mut d_out = [0.0f32; MAX_OUT];
+    let mut c = 0;
+    while c < 3 {
+        d_out[c] = d_rgb[c] * rgb[c] * (1.0 - rgb[c]);
+        c += 1;
+    }
+    let mut d_in = [0.0f32; MAX_WIDTH];
+    {
+        let mut gs = GroupSink {
+            inner: sink,
+            group: Group::AppearanceMlp,
+        };
+        mlp::mlp_backward(
+            &layout.appearance_mlp,
+            params.appearance_mlp,
+            &s.mlp,
+            &d_out,
+            &mut d_in,
+            &mut gs,
+        );
+    }
+    let n = layout.appearance_grid.feature_dim();
+    let off = if layout.config.dual_path { 3 } else { 0 };
+    let mut d_feat = [0.0f32; MAX_GRID_FEATURES];
+    let mut i = 0;
+    while i < n {
+        d_feat[i] = d_in[off + i];
+        i += 1;
+    }
+    let mut gs = GroupSink {
+        inner: sink,
+        group: Group::AppearanceGrid,
+    };
+    grid::grid_backward(&layout.appearance_grid, params.appearance_grid, p, &d_feat, &mut gs);
+}
+
+#[inline(always)]
+fn point_on_ray(ray: &Ray, t: f32) -> [f32; 3] {
+    [
+        ray.origin[0] + t * ray.dir[0],
+        ray.origin[1] + t * ray.dir[1],
+        ray.origin[2] + t * ray.dir[2],
+    ]
+}
+
+/// Samples a ray inside the scene box, evaluates the field and renders colour, depth and
+/// opacity into `cache`. A ray that misses the box renders nothing (n = 0, all zeros).
+/// `jitter` selects stratified jitter (training) or bin centres (rendering and evaluation).
+pub fn ray_forward<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    ray: &Ray,
+    ray_id: u32,
+    seed: u32,
+    jitter: bool,
+    cache: &mut RayCache,
+    s: &mut SampleScratch,
+) {
+    let (near, far, hit) = render::ray_aabb(ray.origin, ray.dir, &layout.config.aabb);
+    let n = if hit && far > near {
+        layout.config.samples as usize
+    } else {
+        0
+    };
+    cache.n = n;
+    if n == 0 {
+        cache.out = RayOutput::zeroed();
+        return;
+    }
+    render::stratified_samples(near, far, n, seed, ray_id, jitter, &mut cache.t);
+    let mut i = 0;
+    while i < n {
+        let p = point_on_ray(ray, cache.t[i]);
+        cache.sdf[i] = sdf_at(layout, params, p, s);
+        cache.rgb[i] = color_at(layout, params, p, s);
+        i += 1;
+    }
+    render::render_forward(
+        layout.config.render_mode,
+        n,
+        &cache.sdf,
+        &cache.rgb,
+        &cache.t,
+        params.beta,
+        &mut cache.out,
+    );
+}
+
+/// Loss weights and switches of one training step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C)]
+pub struct LossConfig {
+    /// Weight of the L1 colour term (paper: 0.1 during initialisation, 0.001 online).
+    pub lambda_color: f32,
+    /// Weight of an L1 depth term against `Ray::target_depth` (0 in monocular mapping; used by
+    /// tests and the `dump-step` cross-check to exercise the depth path).
+    pub lambda_depth: f32,
+    /// Scale applied to every ray's loss (1 / batch size for a mean).
+    pub ray_scale: f32,
+    /// Whether the colour loss reaches the geometry (false = detached rendering weights).
+    pub color_to_geometry: bool,
+    /// Stratified jitter seed for this step.
+    pub seed: u32,
+}
+
+/// What one training ray produced.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct RayResult {
+    pub color: [f32; 3],
+    pub depth: f32,
+    pub opacity: f32,
+    /// This ray's scaled loss contribution.
+    pub loss: f32,
+}
+
+/// Forward, loss and backward for one ray. The loss of the ray is
+/// `ray_scale * (lambda_color * sum_c |C_c - target_c| + lambda_depth * |D - target_depth|)`
+/// (the depth term only when `target_depth > 0`). Gradients go to `sink`.
+pub fn ray_train<P: ParamRead + ?Sized, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    ray: &Ray,
+    ray_id: u32,
+    loss: &LossConfig,
+    cache: &mut RayCache,
+    s: &mut SampleScratch,
+    sink: &mut S,
+) -> RayResult {
+    ray_forward(layout, params, ray, ray_id, loss.seed, true, cache, s);
+    let out = &cache.out;
+    let (l1, d_c) = crate::loss::l1_color(out.color, ray.target);
+    let mut value = loss.lambda_color * l1;
+    let k = loss.ray_scale * loss.lambda_color;
+    let d_color = [k * d_c[0], k * d_c[1], k * d_c[2]];
+    let mut d_depth = 0.0;
+    if ray.target_depth > 0.0 && loss.lambda_depth != 0.0 {
+        let diff = out.depth - ray.target_depth;
+        value = value + loss.lambda_depth * math::abs(diff);
+        let sign = if diff > 0.0 {
+            1.0
+        } else if diff < 0.0 {
+            -1.0
+        } else {
+            0.0
+        };
+        d_depth = loss.ray_scale * loss.lambda_depth * sign;
+    }
+    let result = RayResult {
+        color: out.color,
+        depth: out.depth,
+        opacity: out.opacity,
+        loss: loss.ray_scale * value,
+    };
+    if cache.n == 0 {
+        return result;
+    }
+    ray_backward(layout, params, ray, d_color, d_depth, 0.0, loss.color_to_geometry, cache, s, sink);
+    result
+}
+
+/// Backward from the rendered colour, depth and opacity of a ray whose forward is in `cache`.
+#[allow(clippy::too_many_arguments)]
+pub fn ray_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    ray: &Ray,
+    d_color: [f32; 3],
+    d_depth: f32,
+    d_opacity: f32,
+    color_to_geometry: bool,
+    cache: &RayCache,
+    s: &mut SampleScratch,
+    sink: &mut S,
+) {
+    let n = cache.n;
+    if n == 0 {
+        return;
+    }
+    let mut d_sdf = [0.0f32; MAX_SAMPLES];
+    let mut d_rgb = [[0.0f32; 3]; MAX_SAMPLES];
+    let mut d_beta = 0.0f32;
+    render::render_backward(
+        layout.config.render_mode,
+        n,
+        &cache.sdf,
+        &cache.rgb,
+        &cache.t,
+        params.beta,
+        &cache.out,
+        d_color,
+        d_depth,
+        d_opacity,
+        color_to_geometry,
+        &mut d_sdf,
+        &mut d_rgb,
+        &mut d_beta,
+    );
+    let mut i = 0;
+    while i < n {
+        let p = point_on_ray(ray, cache.t[i]);
+        if d_sdf[i] != 0.0 {
+            sdf_backward(layout, params, p, d_sdf[i], s, sink);
+        }
+        if d_rgb[i][0] != 0.0 || d_rgb[i][1] != 0.0 || d_rgb[i][2] != 0.0 {
+            color_backward(layout, params, p, d_rgb[i], s, sink);
+        }
+        i += 1;
+    }
+    sink.add(Group::Beta, 0, d_beta);
+}

@@ -1,0 +1,295 @@
+//! One training step on a batch of rays, and the [`Backend`] trait that the CPU and Vulkan
+//! backends implement so the mapper and the CLI run on either.
+//!
+//! A step is: zero the fixed-point gradient buffers; for every ray, [`ray_train`] (forward,
+//! loss, backward), each contribution converted on its own to fixed point and added into the
+//! group's `i64` buffer; then Adam on every group with its own learning rate. Because the sums
+//! are integer, any ray order or thread count gives the same bits. The step's loss is the sum
+//! of the per-ray losses taken in ray order (f32), so it is also independent of scheduling.
+
+use crate::adam::{self, AdamConfig, AdamStep};
+use crate::error::check_len;
+use crate::fixed;
+use crate::model::{
+    ray_forward, ray_train, Group, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
+    RayResult, SampleScratch, NUM_GROUPS,
+};
+use crate::Error;
+
+/// Parameters, Adam moments and the fixed-point gradient of one group, all caller-owned.
+pub struct GroupState<'a> {
+    pub params: &'a mut [f32],
+    pub m: &'a mut [f32],
+    pub v: &'a mut [f32],
+    pub grad: &'a mut [i64],
+}
+
+/// Adds each contribution, converted to fixed point, into per-group `i64` buffers.
+pub struct FixedModelSink<'s, 'a> {
+    pub grads: [&'s mut [i64]; NUM_GROUPS],
+    _marker: core::marker::PhantomData<&'a ()>,
+}
+
+impl<'s> FixedModelSink<'s, '_> {
+    pub fn new(grads: [&'s mut [i64]; NUM_GROUPS]) -> Self {
+        Self {
+            grads,
+            _marker: core::marker::PhantomData,
+        }
+    }
+}
+
+impl ModelGradSink for FixedModelSink<'_, '_> {
+    #[inline(always)]
+    fn add(&mut self, group: Group, i: usize, g: f32) {
+        if let Some(slot) = self.grads[group as usize].get_mut(i) {
+            *slot = slot.wrapping_add(fixed::to_fixed(g));
+        }
+    }
+}
+
+/// Summary of one step.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct StepStats {
+    /// Sum over rays of the per-ray scaled losses.
+    pub loss: f32,
+    /// Rays that intersected the scene box.
+    pub rays_hit: u32,
+    /// Adam step number after this step.
+    pub t: u32,
+}
+
+/// The operations the mapper and the CLI need from a compute backend.
+pub trait Backend {
+    type Error: core::fmt::Debug + core::fmt::Display;
+
+    /// The model's shapes.
+    fn layout(&self) -> &ModelLayout;
+    /// Human-readable backend name ("cpu", "cpu-parallel(4)", "vulkan: <device>").
+    fn name(&self) -> &str;
+    /// One training step: gradients of the loss over `rays` (into zeroed fixed-point buffers)
+    /// and an Adam update of every group. `results[i]` receives ray i's outputs.
+    fn train_step(
+        &mut self,
+        rays: &[Ray],
+        loss: &LossConfig,
+        results: &mut [RayResult],
+    ) -> Result<StepStats, Self::Error>;
+    /// Renders rays without jitter (bin centres); no gradients.
+    fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), Self::Error>;
+    /// Copies a group's parameters out.
+    fn read_params(&mut self, group: Group, out: &mut [f32]) -> Result<(), Self::Error>;
+    /// Copies a group's fixed-point gradient of the last step out.
+    fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), Self::Error>;
+    /// Overwrites a group's parameters (and resets its Adam moments when `reset_adam`).
+    fn write_params(&mut self, group: Group, data: &[f32], reset_adam: bool)
+        -> Result<(), Self::Error>;
+}
+
+/// The single-threaded reference backend: every other backend must match it bit for bit.
+pub struct CpuBackend<'a> {
+    layout: ModelLayout,
+    groups: [GroupState<'a>; NUM_GROUPS],
+    adam: [AdamConfig; NUM_GROUPS],
+    t: u32,
+}
+
+impl<'a> CpuBackend<'a> {
+    /// Checks every buffer length against the layout.
+    pub fn new(
+        layout: ModelLayout,
+        groups: [GroupState<'a>; NUM_GROUPS],
+        adam: [AdamConfig; NUM_GROUPS],
+    ) -> Result<Self, Error> {
+        let lens = layout.group_lens();
+        let mut g = 0;
+        while g < NUM_GROUPS {
+            let name = Group::ALL[g].name();
+            check_len(name, groups[g].params.len(), lens[g])?;
+            check_len(name, groups[g].m.len(), lens[g])?;
+            check_len(name, groups[g].v.len(), lens[g])?;
+            check_len(name, groups[g].grad.len(), lens[g])?;
+            g += 1;
+        }
+        Ok(Self {
+            layout,
+            groups,
+            adam,
+            t: 0,
+        })
+    }
+
+    /// Adam steps taken so far.
+    pub fn steps(&self) -> u32 {
+        self.t
+    }
+
+    /// Read access to a group's parameters.
+    pub fn params(&self, group: Group) -> &[f32] {
+        self.groups[group as usize].params
+    }
+
+    /// Read access to a group's fixed-point gradient.
+    pub fn grads(&self, group: Group) -> &[i64] {
+        self.groups[group as usize].grad
+    }
+
+    /// Zeroes every gradient buffer.
+    pub fn zero_grads(&mut self) {
+        for g in self.groups.iter_mut() {
+            for x in g.grad.iter_mut() {
+                *x = 0;
+            }
+        }
+    }
+
+    /// Forward, loss and backward for `rays`, adding into the gradient buffers (not zeroed).
+    pub fn accumulate(
+        &mut self,
+        rays: &[Ray],
+        loss: &LossConfig,
+        results: &mut [RayResult],
+    ) -> Result<StepStats, Error> {
+        check_len("results", results.len(), rays.len())?;
+        let [g0, g1, g2, g3, g4] = &mut self.groups;
+        let params = Params {
+            geometry_grid: &*g0.params,
+            appearance_grid: &*g1.params,
+            geometry_mlp: &*g2.params,
+            appearance_mlp: &*g3.params,
+            beta: g4.params[0],
+        };
+        let mut sink = FixedModelSink::new([
+            &mut *g0.grad,
+            &mut *g1.grad,
+            &mut *g2.grad,
+            &mut *g3.grad,
+            &mut *g4.grad,
+        ]);
+        let mut cache = RayCache::new();
+        let mut scratch = SampleScratch::new();
+        for (i, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
+            *res = ray_train(
+                &self.layout,
+                &params,
+                ray,
+                i as u32,
+                loss,
+                &mut cache,
+                &mut scratch,
+                &mut sink,
+            );
+        }
+        Ok(summarize(results, self.t))
+    }
+
+    /// Adam on every group from the accumulated gradients.
+    pub fn apply_adam(&mut self) -> Result<(), Error> {
+        self.t += 1;
+        for (g, state) in self.groups.iter_mut().enumerate() {
+            let s = AdamStep::new(&self.adam[g], self.t);
+            adam::adam_update_fixed(&s, state.params, state.m, state.v, state.grad)?;
+        }
+        Ok(())
+    }
+}
+
+/// Step statistics from per-ray results (loss summed in ray order).
+pub fn summarize(results: &[RayResult], t: u32) -> StepStats {
+    let mut loss = 0.0f32;
+    let mut hit = 0u32;
+    for r in results {
+        loss += r.loss;
+        hit += (r.opacity > 0.0) as u32;
+    }
+    StepStats {
+        loss,
+        rays_hit: hit,
+        t,
+    }
+}
+
+impl Backend for CpuBackend<'_> {
+    type Error = Error;
+
+    fn layout(&self) -> &ModelLayout {
+        &self.layout
+    }
+
+    fn name(&self) -> &str {
+        "cpu"
+    }
+
+    fn train_step(
+        &mut self,
+        rays: &[Ray],
+        loss: &LossConfig,
+        results: &mut [RayResult],
+    ) -> Result<StepStats, Error> {
+        self.zero_grads();
+        let mut stats = self.accumulate(rays, loss, results)?;
+        self.apply_adam()?;
+        stats.t = self.t;
+        Ok(stats)
+    }
+
+    fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), Error> {
+        check_len("results", results.len(), rays.len())?;
+        let [g0, g1, g2, g3, g4] = &self.groups;
+        let params = Params {
+            geometry_grid: &*g0.params,
+            appearance_grid: &*g1.params,
+            geometry_mlp: &*g2.params,
+            appearance_mlp: &*g3.params,
+            beta: g4.params[0],
+        };
+        let mut cache = RayCache::new();
+        let mut scratch = SampleScratch::new();
+        for (i, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
+            ray_forward(&self.layout, &params, ray, i as u32, 0, false, &mut cache, &mut scratch);
+            *res = RayResult {
+                color: cache.out.color,
+                depth: cache.out.depth,
+                opacity: cache.out.opacity,
+                loss: 0.0,
+            };
+        }
+        Ok(())
+    }
+
+    fn read_params(&mut self, group: Group, out: &mut [f32]) -> Result<(), Error> {
+        let src = &*self.groups[group as usize].params;
+        check_len(group.name(), out.len(), src.len())?;
+        out.copy_from_slice(src);
+        Ok(())
+    }
+
+    fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), Error> {
+        let src = &*self.groups[group as usize].grad;
+        check_len(group.name(), out.len(), src.len())?;
+        out.copy_from_slice(src);
+        Ok(())
+    }
+
+    fn write_params(&mut self, group: Group, data: &[f32], reset_adam: bool) -> Result<(), Error> {
+        let st = &mut self.groups[group as usize];
+        check_len(group.name(), data.len(), st.params.len())?;
+        st.params.copy_from_slice(data);
+        if reset_adam {
+            st.m.fill(0.0);
+            st.v.fill(0.0);
+        }
+        Ok(())
+    }
+}
+
+/// Default Adam settings per group (the paper's: grids 0.01, MLPs 1e-5; beta with the MLPs).
+pub fn paper_adam() -> [AdamConfig; NUM_GROUPS] {
+    [
+        AdamConfig::new(0.01),
+        AdamConfig::new(0.01),
+        AdamConfig::new(1e-5),
+        AdamConfig::new(1e-5),
+        AdamConfig::new(1e-5),
+    ]
+}

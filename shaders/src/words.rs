@@ -1,0 +1,214 @@
+//! Layouts and scene constants as flat `u32` words (f32 fields as their bits), the form in
+//! which they reach the shaders through a storage buffer.
+//!
+//! Both directions live here, in plain `no_std` Rust without dependencies beyond `himap-core`,
+//! so the shader (decode) and the Vulkan host (encode, included with `#[path]`) share one
+//! definition. Decoders never panic: words past the end of the slice read as 0.
+//!
+//! | item | words | order |
+//! |---|---|---|
+//! | [`Aabb`] | [`AABB`] = 6 | min x y z, max x y z |
+//! | [`Pose`] | [`POSE`] = 12 | `m` row-major |
+//! | [`Intrinsics`] | [`INTRINSICS`] = 6 | width, height, fx, fy, cx, cy |
+//! | [`GridLayout`] | [`GRID_LAYOUT`] = 98 | kind, levels, channels, param_count, aabb (6), then per level (8): res (3), offset, plane_offsets (3), line_offsets (3), count |
+//! | [`MlpLayout`] | [`MLP_LAYOUT`] = 15 | n_in, hidden, hidden_layers, n_out, param_count, weight_offsets (5), bias_offsets (5) |
+
+use himap_core::camera::{Intrinsics, Pose};
+use himap_core::grid::{GridKind, GridLayout, LevelLayout, MAX_LEVELS};
+use himap_core::mlp::{MlpLayout, MAX_HIDDEN_LAYERS};
+use himap_core::Aabb;
+
+/// Words of an [`Aabb`].
+pub const AABB: usize = 6;
+/// Words of a [`Pose`].
+pub const POSE: usize = 12;
+/// Words of an [`Intrinsics`].
+pub const INTRINSICS: usize = 6;
+/// Words of one [`LevelLayout`].
+pub const LEVEL_LAYOUT: usize = 11;
+/// Words of a [`GridLayout`].
+pub const GRID_LAYOUT: usize = 4 + AABB + MAX_LEVELS * LEVEL_LAYOUT;
+/// Words of an [`MlpLayout`].
+pub const MLP_LAYOUT: usize = 5 + 2 * (MAX_HIDDEN_LAYERS + 1);
+
+/// Word `i`, or 0 past the end.
+#[inline(always)]
+pub fn word(w: &[u32], i: usize) -> u32 {
+    if i < w.len() {
+        w[i]
+    } else {
+        0
+    }
+}
+
+#[inline(always)]
+fn fword(w: &[u32], i: usize) -> f32 {
+    f32::from_bits(word(w, i))
+}
+
+#[inline(always)]
+fn put(w: &mut [u32], i: usize, v: u32) {
+    if i < w.len() {
+        w[i] = v;
+    }
+}
+
+pub fn aabb_from_words(w: &[u32], at: usize) -> Aabb {
+    Aabb {
+        min: [fword(w, at), fword(w, at + 1), fword(w, at + 2)],
+        max: [fword(w, at + 3), fword(w, at + 4), fword(w, at + 5)],
+    }
+}
+
+pub fn aabb_to_words(b: &Aabb, w: &mut [u32], at: usize) {
+    let mut a = 0;
+    while a < 3 {
+        put(w, at + a, b.min[a].to_bits());
+        put(w, at + 3 + a, b.max[a].to_bits());
+        a += 1;
+    }
+}
+
+pub fn pose_from_words(w: &[u32], at: usize) -> Pose {
+    let mut m = [[0.0f32; 4]; 3];
+    let mut r = 0;
+    while r < 3 {
+        let mut c = 0;
+        while c < 4 {
+            m[r][c] = fword(w, at + r * 4 + c);
+            c += 1;
+        }
+        r += 1;
+    }
+    Pose { m }
+}
+
+pub fn pose_to_words(p: &Pose, w: &mut [u32], at: usize) {
+    let mut r = 0;
+    while r < 3 {
+        let mut c = 0;
+        while c < 4 {
+            put(w, at + r * 4 + c, p.m[r][c].to_bits());
+            c += 1;
+        }
+        r += 1;
+    }
+}
+
+pub fn intrinsics_from_words(w: &[u32], at: usize) -> Intrinsics {
+    Intrinsics {
+        width: word(w, at),
+        height: word(w, at + 1),
+        fx: fword(w, at + 2),
+        fy: fword(w, at + 3),
+        cx: fword(w, at + 4),
+        cy: fword(w, at + 5),
+    }
+}
+
+pub fn intrinsics_to_words(k: &Intrinsics, w: &mut [u32], at: usize) {
+    put(w, at, k.width);
+    put(w, at + 1, k.height);
+    put(w, at + 2, k.fx.to_bits());
+    put(w, at + 3, k.fy.to_bits());
+    put(w, at + 4, k.cx.to_bits());
+    put(w, at + 5, k.cy.to_bits());
+}
+
+fn u32x3(w: &[u32], at: usize) -> [u32; 3] {
+    [word(w, at), word(w, at + 1), word(w, at + 2)]
+}
+
+fn put_u32x3(w: &mut [u32], at: usize, v: [u32; 3]) {
+    put(w, at, v[0]);
+    put(w, at + 1, v[1]);
+    put(w, at + 2, v[2]);
+}
+
+pub fn grid_layout_from_words(w: &[u32], at: usize) -> GridLayout {
+    let kind = if word(w, at) == GridKind::Dense as u32 {
+        GridKind::Dense
+    } else {
+        GridKind::Factorized
+    };
+    let mut level = [LevelLayout {
+        res: [0; 3],
+        offset: 0,
+        plane_offsets: [0; 3],
+        line_offsets: [0; 3],
+        count: 0,
+    }; MAX_LEVELS];
+    let mut l = 0;
+    while l < MAX_LEVELS {
+        let b = at + 4 + AABB + l * LEVEL_LAYOUT;
+        level[l] = LevelLayout {
+            res: u32x3(w, b),
+            offset: word(w, b + 3),
+            plane_offsets: u32x3(w, b + 4),
+            line_offsets: u32x3(w, b + 7),
+            count: word(w, b + 10),
+        };
+        l += 1;
+    }
+    GridLayout {
+        kind,
+        levels: word(w, at + 1),
+        channels: word(w, at + 2),
+        aabb: aabb_from_words(w, at + 4),
+        level,
+        param_count: word(w, at + 3),
+    }
+}
+
+pub fn grid_layout_to_words(g: &GridLayout, w: &mut [u32], at: usize) {
+    put(w, at, g.kind as u32);
+    put(w, at + 1, g.levels);
+    put(w, at + 2, g.channels);
+    put(w, at + 3, g.param_count);
+    aabb_to_words(&g.aabb, w, at + 4);
+    let mut l = 0;
+    while l < MAX_LEVELS {
+        let b = at + 4 + AABB + l * LEVEL_LAYOUT;
+        let lv = &g.level[l];
+        put_u32x3(w, b, lv.res);
+        put(w, b + 3, lv.offset);
+        put_u32x3(w, b + 4, lv.plane_offsets);
+        put_u32x3(w, b + 7, lv.line_offsets);
+        put(w, b + 10, lv.count);
+        l += 1;
+    }
+}
+
+pub fn mlp_layout_from_words(w: &[u32], at: usize) -> MlpLayout {
+    let mut weight_offsets = [0u32; MAX_HIDDEN_LAYERS + 1];
+    let mut bias_offsets = [0u32; MAX_HIDDEN_LAYERS + 1];
+    let mut k = 0;
+    while k <= MAX_HIDDEN_LAYERS {
+        weight_offsets[k] = word(w, at + 5 + k);
+        bias_offsets[k] = word(w, at + 6 + MAX_HIDDEN_LAYERS + k);
+        k += 1;
+    }
+    MlpLayout {
+        n_in: word(w, at),
+        hidden: word(w, at + 1),
+        hidden_layers: word(w, at + 2),
+        n_out: word(w, at + 3),
+        weight_offsets,
+        bias_offsets,
+        param_count: word(w, at + 4),
+    }
+}
+
+pub fn mlp_layout_to_words(m: &MlpLayout, w: &mut [u32], at: usize) {
+    put(w, at, m.n_in);
+    put(w, at + 1, m.hidden);
+    put(w, at + 2, m.hidden_layers);
+    put(w, at + 3, m.n_out);
+    put(w, at + 4, m.param_count);
+    let mut k = 0;
+    while k <= MAX_HIDDEN_LAYERS {
+        put(w, at + 5 + k, m.weight_offsets[k]);
+        put(w, at + 6 + MAX_HIDDEN_LAYERS + k, m.bias_offsets[k]);
+        k += 1;
+    }
+}
