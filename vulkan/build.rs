@@ -30,18 +30,15 @@ use rspirv::dr::{Instruction, Module, Operand};
 use rspirv::spirv::{Decoration, Op};
 use spirv_builder::{Capability, CompileResult, SpirvBuilder};
 use std::collections::BTreeSet;
-use std::sync::{Arc, Mutex};
 use std::env;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::{Arc, Mutex};
 
 /// The nightly rust-gpu 0.11 needs (must match `rust-toolchain.toml`).
 const TOOLCHAIN: &str = "nightly-2026-08-15";
 const TARGET: &str = "spirv-unknown-vulkan1.2";
-/// Features of `himap-shaders` to build (see `shaders/Cargo.toml`). More can be added for one
-/// build with `HIMAP_SHADER_FEATURES=a,b`.
-const SHADER_FEATURES: &[&str] = &[];
 
 type BoxError = Box<dyn std::error::Error>;
 
@@ -54,7 +51,6 @@ fn main() {
 
 fn run() -> Result<(), BoxError> {
     println!("cargo::rerun-if-env-changed=HIMAP_VERBOSE_BUILD");
-    println!("cargo::rerun-if-env-changed=HIMAP_SHADER_FEATURES");
     check_toolchain()?;
     check_tool("spirv-opt")?;
     check_tool("spirv-val")?;
@@ -67,8 +63,7 @@ fn run() -> Result<(), BoxError> {
         // rust-gpu would run spirv-opt on the undecorated module, and SPIRV-Tools 2023.1
         // (Debian 12's) folds `a * b + c` into GLSL.std.450 `Fma` there. We run spirv-opt
         // ourselves after the NoContraction pass, which stops that fusion.
-        .extra_arg("--no-spirv-opt")
-        .shader_crate_features(shader_features());
+        .extra_arg("--no-spirv-opt");
     // rerun-if-changed on every shader and himap-core source, forward rustc diagnostics.
     builder.build_script.defaults = true;
     // We export the post-processed module ourselves (HIMAP_SHADERS_SPV); the raw module's
@@ -138,18 +133,6 @@ fn run() -> Result<(), BoxError> {
     }
     println!("cargo::rustc-env=HIMAP_SHADERS_SPV={}", spv_path.display());
     Ok(())
-}
-
-fn shader_features() -> Vec<String> {
-    let mut features: Vec<String> = SHADER_FEATURES.iter().map(|f| f.to_string()).collect();
-    if let Ok(extra) = env::var("HIMAP_SHADER_FEATURES") {
-        for f in extra.split(',').map(str::trim).filter(|f| !f.is_empty()) {
-            if !features.iter().any(|g| g == f) {
-                features.push(f.to_string());
-            }
-        }
-    }
-    features
 }
 
 /// Runs the builder, passing its build-script output (rerun-if-changed lines, forwarded rustc
@@ -409,8 +392,10 @@ fn check_forbidden(module: &Module, why: &str) -> Result<(), BoxError> {
             for inst in &b.instructions {
                 match inst.class.opcode {
                     Op::ExtInst => {
-                        if let (Some(Operand::IdRef(set)), Some(Operand::LiteralExtInstInteger(n))) =
-                            (inst.operands.first(), inst.operands.get(1))
+                        if let (
+                            Some(Operand::IdRef(set)),
+                            Some(Operand::LiteralExtInstInteger(n)),
+                        ) = (inst.operands.first(), inst.operands.get(1))
                         {
                             if glsl.contains(set) {
                                 match glsl_name(*n) {

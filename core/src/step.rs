@@ -82,8 +82,12 @@ pub trait Backend {
     /// Copies a group's fixed-point gradient of the last step out.
     fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), Self::Error>;
     /// Overwrites a group's parameters (and resets its Adam moments when `reset_adam`).
-    fn write_params(&mut self, group: Group, data: &[f32], reset_adam: bool)
-        -> Result<(), Self::Error>;
+    fn write_params(
+        &mut self,
+        group: Group,
+        data: &[f32],
+        reset_adam: bool,
+    ) -> Result<(), Self::Error>;
 }
 
 /// The single-threaded reference backend: every other backend must match it bit for bit.
@@ -246,7 +250,16 @@ impl Backend for CpuBackend<'_> {
         let mut cache = RayCache::new();
         let mut scratch = SampleScratch::new();
         for (i, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
-            ray_forward(&self.layout, &params, ray, i as u32, 0, false, &mut cache, &mut scratch);
+            ray_forward(
+                &self.layout,
+                &params,
+                ray,
+                i as u32,
+                0,
+                false,
+                &mut cache,
+                &mut scratch,
+            );
             *res = RayResult {
                 color: cache.out.color,
                 depth: cache.out.depth,

@@ -10,8 +10,8 @@ use std::sync::atomic::{AtomicI64, Ordering};
 use himap_core::adam::{self, AdamConfig, AdamStep};
 use himap_core::fixed;
 use himap_core::model::{
-    ray_forward, ray_train, sdf_at, color_at, Group, LossConfig, ModelGradSink, ModelLayout, Params,
-    Ray, RayCache, RayResult, SampleScratch, NUM_GROUPS,
+    color_at, ray_forward, ray_train, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout,
+    Params, Ray, RayCache, RayResult, SampleScratch, NUM_GROUPS,
 };
 use himap_core::step::{summarize, Backend, StepStats};
 use rayon::prelude::*;
@@ -229,7 +229,13 @@ impl ParallelCpuBackend {
                     .for_each(|(((p, m), v), gr)| {
                         for i in 0..p.len() {
                             let q = gr[i].load(Ordering::Relaxed);
-                            adam::adam_update(&s, &mut p[i], &mut m[i], &mut v[i], fixed::from_fixed(q));
+                            adam::adam_update(
+                                &s,
+                                &mut p[i],
+                                &mut m[i],
+                                &mut v[i],
+                                fixed::from_fixed(q),
+                            );
                         }
                     });
             }
@@ -308,7 +314,16 @@ impl Backend for ParallelCpuBackend {
                     let mut scratch = Box::new(SampleScratch::new());
                     for (k, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
                         let id = (c * CHUNK + k) as u32;
-                        ray_forward(&layout, &params, ray, id, 0, false, &mut cache, &mut scratch);
+                        ray_forward(
+                            &layout,
+                            &params,
+                            ray,
+                            id,
+                            0,
+                            false,
+                            &mut cache,
+                            &mut scratch,
+                        );
                         *res = RayResult {
                             color: cache.out.color,
                             depth: cache.out.depth,

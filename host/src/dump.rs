@@ -9,7 +9,9 @@ use std::path::Path;
 
 use anyhow::Context;
 use himap_core::grid::{GridConfig, GridKind, GridLayout, MAX_LEVELS};
-use himap_core::model::{Group, LossConfig, ModelConfig, ModelLayout, Ray, RayCache, RayResult, SampleScratch};
+use himap_core::model::{
+    Group, LossConfig, ModelConfig, ModelLayout, Ray, RayCache, RayResult, SampleScratch,
+};
 use himap_core::render::RenderMode;
 use himap_core::rng::SplitMix;
 use himap_core::step::{Backend, CpuBackend, GroupState};
@@ -131,11 +133,36 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
     let [v0, v1, v2, v3, v4] = &mut v;
     let [g0, g1, g2, g3, g4] = &mut grads;
     let groups = [
-        GroupState { params: p0, m: m0, v: v0, grad: g0 },
-        GroupState { params: p1, m: m1, v: v1, grad: g1 },
-        GroupState { params: p2, m: m2, v: v2, grad: g2 },
-        GroupState { params: p3, m: m3, v: v3, grad: g3 },
-        GroupState { params: p4, m: m4, v: v4, grad: g4 },
+        GroupState {
+            params: p0,
+            m: m0,
+            v: v0,
+            grad: g0,
+        },
+        GroupState {
+            params: p1,
+            m: m1,
+            v: v1,
+            grad: g1,
+        },
+        GroupState {
+            params: p2,
+            m: m2,
+            v: v2,
+            grad: g2,
+        },
+        GroupState {
+            params: p3,
+            m: m3,
+            v: v3,
+            grad: g3,
+        },
+        GroupState {
+            params: p4,
+            m: m4,
+            v: v4,
+            grad: g4,
+        },
     ];
     let mut backend = CpuBackend::new(layout, groups, himap_core::step::paper_adam())?;
     let mut results = vec![RayResult::default(); rays.len()];
@@ -151,7 +178,16 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
         let mut cache = Box::new(RayCache::new());
         let mut scratch = Box::new(SampleScratch::new());
         for (i, ray) in rays.iter().enumerate() {
-            himap_core::model::ray_forward(&layout, &view, ray, i as u32, loss.seed, true, &mut cache, &mut scratch);
+            himap_core::model::ray_forward(
+                &layout,
+                &view,
+                ray,
+                i as u32,
+                loss.seed,
+                true,
+                &mut cache,
+                &mut scratch,
+            );
             n_all[i] = cache.n as i64;
             for k in 0..cache.n {
                 t_all[i * s + k] = cache.t[k];
@@ -167,22 +203,54 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
     };
     for g in Group::ALL {
         let gi = g as usize;
-        push_f32(&format!("params.{}", g.name()), vec![lens[gi]], &initial.params[gi]);
-        push_f32(&format!("params_after.{}", g.name()), vec![lens[gi]], backend.params(g));
-        let gf: Vec<f32> = backend.grads(g).iter().map(|&q| himap_core::fixed::from_fixed(q)).collect();
+        push_f32(
+            &format!("params.{}", g.name()),
+            vec![lens[gi]],
+            &initial.params[gi],
+        );
+        push_f32(
+            &format!("params_after.{}", g.name()),
+            vec![lens[gi]],
+            backend.params(g),
+        );
+        let gf: Vec<f32> = backend
+            .grads(g)
+            .iter()
+            .map(|&q| himap_core::fixed::from_fixed(q))
+            .collect();
         push_f32(&format!("grad.{}", g.name()), vec![lens[gi]], &gf);
     }
     let flat = |f: &dyn Fn(&Ray) -> [f32; 3]| -> Vec<f32> { rays.iter().flat_map(f).collect() };
     push_f32("rays.origin", vec![n, 3], &flat(&|r| r.origin));
     push_f32("rays.dir", vec![n, 3], &flat(&|r| r.dir));
     push_f32("target.color", vec![n, 3], &flat(&|r| r.target));
-    push_f32("target.depth", vec![n], &rays.iter().map(|r| r.target_depth).collect::<Vec<_>>());
+    push_f32(
+        "target.depth",
+        vec![n],
+        &rays.iter().map(|r| r.target_depth).collect::<Vec<_>>(),
+    );
     push_f32("samples.t", vec![n, s], &t_all);
     push_f32("render.weights", vec![n, s], &w_all);
-    push_f32("render.color", vec![n, 3], &results.iter().flat_map(|r| r.color).collect::<Vec<_>>());
-    push_f32("render.depth", vec![n], &results.iter().map(|r| r.depth).collect::<Vec<_>>());
-    push_f32("render.opacity", vec![n], &results.iter().map(|r| r.opacity).collect::<Vec<_>>());
-    push_f32("loss.per_ray", vec![n], &results.iter().map(|r| r.loss).collect::<Vec<_>>());
+    push_f32(
+        "render.color",
+        vec![n, 3],
+        &results.iter().flat_map(|r| r.color).collect::<Vec<_>>(),
+    );
+    push_f32(
+        "render.depth",
+        vec![n],
+        &results.iter().map(|r| r.depth).collect::<Vec<_>>(),
+    );
+    push_f32(
+        "render.opacity",
+        vec![n],
+        &results.iter().map(|r| r.opacity).collect::<Vec<_>>(),
+    );
+    push_f32(
+        "loss.per_ray",
+        vec![n],
+        &results.iter().map(|r| r.loss).collect::<Vec<_>>(),
+    );
     push_f32("loss", vec![1], &[stats.loss]);
     for g in Group::ALL {
         tensors.push((
@@ -192,7 +260,12 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
             i64_bytes(backend.grads(g)),
         ));
     }
-    tensors.push(("samples.count".into(), Dtype::I64, vec![n], i64_bytes(&n_all)));
+    tensors.push((
+        "samples.count".into(),
+        Dtype::I64,
+        vec![n],
+        i64_bytes(&n_all),
+    ));
 
     let config = json!({
         "aabb": {"min": cfg.aabb.min, "max": cfg.aabb.max},
@@ -217,7 +290,9 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
     meta.insert("format".to_string(), "himap-dump-step-v1".to_string());
     let views: Vec<(String, TensorView<'_>)> = tensors
         .iter()
-        .map(|(name, dt, shape, bytes)| Ok((name.clone(), TensorView::new(*dt, shape.clone(), bytes)?)))
+        .map(|(name, dt, shape, bytes)| {
+            Ok((name.clone(), TensorView::new(*dt, shape.clone(), bytes)?))
+        })
         .collect::<Result<_, safetensors::SafeTensorError>>()?;
     safetensors::serialize_to_file(views, Some(meta), out)
         .with_context(|| format!("writing {}", out.display()))?;

@@ -7,7 +7,11 @@ use clap::{Parser, Subcommand};
 use himap::dump::{dump_step, DumpOptions};
 
 #[derive(Parser)]
-#[command(name = "himap", version, about = "Monocular dense mapping with a hierarchical factorized radiance field (Hi-Map)")]
+#[command(
+    name = "himap",
+    version,
+    about = "Monocular dense mapping with a hierarchical factorized radiance field (Hi-Map)"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -51,7 +55,9 @@ fn parse_render(s: &str) -> anyhow::Result<himap_core::render::RenderMode> {
         "sdf-density" => SdfDensity,
         "sdf-direct" => SdfDirect,
         "occupancy" => Occupancy,
-        other => anyhow::bail!("unknown rendering '{other}': use sdf-density, sdf-direct or occupancy"),
+        other => {
+            anyhow::bail!("unknown rendering '{other}': use sdf-density, sdf-direct or occupancy")
+        }
     })
 }
 

@@ -20,7 +20,11 @@ pub fn target(origin: [f32; 3], dir: [f32; 3]) -> ([f32; 3], f32) {
     if disc > 0.0 {
         let t = -b - disc.sqrt();
         if t > 0.0 {
-            let p = [origin[0] + t * dir[0], origin[1] + t * dir[1], origin[2] + t * dir[2]];
+            let p = [
+                origin[0] + t * dir[0],
+                origin[1] + t * dir[1],
+                origin[2] + t * dir[2],
+            ];
             let n = [p[0] / 0.45, p[1] / 0.45, p[2] / 0.45];
             return ([0.5 + 0.4 * n[0], 0.5 + 0.4 * n[1], 0.5 + 0.4 * n[2]], t);
         }
@@ -102,7 +106,11 @@ pub fn run(
         let mse: f32 = results
             .iter()
             .zip(&batch)
-            .map(|(r, b)| (0..3).map(|c| (r.color[c] - b.target[c]).powi(2)).sum::<f32>())
+            .map(|(r, b)| {
+                (0..3)
+                    .map(|c| (r.color[c] - b.target[c]).powi(2))
+                    .sum::<f32>()
+            })
             .sum::<f32>()
             / (3 * rays) as f32;
         window.0 += stats.loss;

@@ -25,6 +25,7 @@
 pub mod words;
 
 use himap_core::camera::{Intrinsics, Pose};
+use himap_core::grid::{self, MAX_GRID_FEATURES};
 use himap_core::mlp::{self, MlpScratch, MAX_OUT, MAX_WIDTH};
 use himap_core::{fixed, rng, Aabb, GradSink};
 use spirv_std::arch::atomic_i_add;
@@ -187,13 +188,6 @@ pub fn mlp_forward_cs(
 /// - binding 3 `out`: `D` floats per point.
 ///
 /// Push constants: `n` = number of points.
-///
-/// Behind the `grid` feature until `himap_core::grid` compiles under rust-gpu
-/// (`core/src/grid.rs`, `normalize_with_mask`: `[false; 3]` -> "memset invalid on bool
-/// pattern"; `[false, false, false]` compiles). Try it with
-/// `HIMAP_SHADER_FEATURES=grid cargo build -p himap-vulkan`, then add it to
-/// `SHADER_FEATURES` in `vulkan/build.rs` (or drop this `cfg`).
-#[cfg(feature = "grid")]
 #[spirv(compute(threads(64)))]
 pub fn grid_forward_cs(
     #[spirv(global_invocation_id)] id: UVec3,
@@ -203,7 +197,6 @@ pub fn grid_forward_cs(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] positions: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] out: &mut [f32],
 ) {
-    use himap_core::grid::{self, MAX_GRID_FEATURES};
     let i = id.x as usize;
     if i >= pc.n as usize || (i + 1) * 3 > positions.len() {
         return;

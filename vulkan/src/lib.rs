@@ -19,7 +19,6 @@ pub mod entry {
     pub const PROBE: &str = "probe_cs";
     pub const FIXED_ACCUMULATE: &str = "fixed_accumulate_cs";
     pub const MLP_FORWARD: &str = "mlp_forward_cs";
-    /// Only with the `grid` feature of `himap-shaders` (see `build.rs`).
     pub const GRID_FORWARD: &str = "grid_forward_cs";
 }
 
@@ -33,10 +32,9 @@ pub mod words;
 
 /// The module as `u32` words.
 pub fn shader_words() -> Vec<u32> {
-    SHADERS_SPV
-        .chunks_exact(4)
-        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
+    let (words, rest) = SHADERS_SPV.as_chunks::<4>();
+    debug_assert!(rest.is_empty());
+    words.iter().map(|w| u32::from_le_bytes(*w)).collect()
 }
 
 #[cfg(test)]
@@ -70,7 +68,12 @@ mod tests {
             }
         }
         let listed: BTreeSet<&str> = names.values().map(|s| s.as_str()).collect();
-        for want in [entry::PROBE, entry::FIXED_ACCUMULATE, entry::MLP_FORWARD] {
+        for want in [
+            entry::PROBE,
+            entry::FIXED_ACCUMULATE,
+            entry::MLP_FORWARD,
+            entry::GRID_FORWARD,
+        ] {
             assert!(listed.contains(want), "{want} missing from {listed:?}");
             assert!(ENTRY_POINTS.contains(&want));
         }
@@ -183,9 +186,10 @@ mod tests {
             let mut w = [0u32; words::GRID_LAYOUT];
             words::grid_layout_to_words(&g, &mut w, 0);
             assert_eq!(words::grid_layout_from_words(&w, 0), g);
-            // A short buffer reads as zeros instead of panicking.
-            let short = words::grid_layout_from_words(&w[..5], 0);
+            // Words past the end of a short buffer read as zeros instead of panicking.
+            let short = words::grid_layout_from_words(&w[..3], 0);
             assert_eq!((short.levels, short.param_count), (g.levels, 0));
+            assert_eq!((short.aabb.max, short.level[0].res), ([0.0; 3], [0; 3]));
         }
         let pose = Pose {
             m: [
