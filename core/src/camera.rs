@@ -53,7 +53,11 @@ impl Intrinsics {
     #[inline]
     pub fn project(&self, p: [f32; 3]) -> (f32, f32, f32) {
         let z = p[2];
-        (self.fx * p[0] / z + self.cx, self.fy * p[1] / z + self.cy, z)
+        (
+            self.fx * p[0] / z + self.cx,
+            self.fy * p[1] / z + self.cy,
+            z,
+        )
     }
 }
 
@@ -94,7 +98,11 @@ impl Pose {
     #[inline]
     pub fn transform(&self, p: [f32; 3]) -> [f32; 3] {
         let r = self.rotate(p);
-        [r[0] + self.m[0][3], r[1] + self.m[1][3], r[2] + self.m[2][3]]
+        [
+            r[0] + self.m[0][3],
+            r[1] + self.m[1][3],
+            r[2] + self.m[2][3],
+        ]
     }
 
     /// Transforms a world point into camera space (inverse of a rigid transform: R^T (p - t)).
@@ -194,7 +202,11 @@ mod tests {
         let c = k.cropped(10);
         assert_eq!((c.width, c.height, c.cx, c.cy), (1180, 660, 589.5, 329.5));
         assert!(!Pose {
-            m: [[2.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]
+            m: [
+                [2.0, 0.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, 1.0, 0.0]
+            ]
         }
         .is_rigid(1e-3));
     }

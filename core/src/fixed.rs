@@ -52,7 +52,10 @@ mod tests {
     fn round_trip_is_within_resolution() {
         for &g in &[0.0f32, 1.0, -1.0, 1e-6, -3.25e-3, 12345.678, -0.5] {
             let back = from_fixed(to_fixed(g));
-            assert!((back - g).abs() <= INV_SCALE * 2.0 + g.abs() * 1e-7, "{g} -> {back}");
+            assert!(
+                (back - g).abs() <= INV_SCALE * 2.0 + g.abs() * 1e-7,
+                "{g} -> {back}"
+            );
         }
     }
 

@@ -353,7 +353,8 @@ fn kernel_dims(layout: &GridLayout) -> (usize, usize) {
 #[allow(clippy::manual_range_contains)]
 fn normalize_with_mask(aabb: &Aabb, p: [f32; 3]) -> ([f32; 3], [bool; 3]) {
     let mut xn = [0.0f32; 3];
-    let mut inside = [false; 3];
+    // Written out: rust-gpu cannot lower a memset with a `bool` pattern (`[false; 3]`).
+    let mut inside = [false, false, false];
     let mut a = 0;
     while a < 3 {
         let x = (p[a] - aabb.min[a]) / (aabb.max[a] - aabb.min[a]) * 2.0 - 1.0;

@@ -2,10 +2,10 @@
 //! file outputs and a multi-threaded CPU backend around `himap-core`.
 
 pub mod dataset;
+pub mod eval;
+pub mod mesh;
 pub mod metrics;
 pub mod synth;
-pub mod mesh;
-pub mod eval;
 
 pub mod backend;
 pub mod dump;

@@ -169,7 +169,8 @@ pub fn sample_surface(mesh: &Mesh, n: usize, seed: u64) -> Vec<[f32; 3]> {
         total += if a.is_finite() { a } else { 0.0 };
         cdf.push(total);
     }
-    if !(total > 0.0) {
+    // (Also catches a NaN total.)
+    if total.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
         return Vec::new();
     }
     (0..n)
@@ -186,6 +187,9 @@ pub fn sample_surface(mesh: &Mesh, n: usize, seed: u64) -> Vec<[f32; 3]> {
         })
         .collect()
 }
+
+/// The type to name for "no colour query" in [`extract_mesh`]: `None::<NoColor>`.
+pub type NoColor = fn(&[[f32; 3]]) -> Vec<[f32; 3]>;
 
 /// Most points per SDF or colour query in [`extract_mesh`].
 pub const EXTRACT_BATCH: usize = 1 << 20;

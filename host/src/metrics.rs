@@ -11,6 +11,8 @@
 //! covariance with the population (biased) estimator, a *valid* convolution (no padding: the
 //! SSIM map is (H - 10) x (W - 10)), averaged over the valid map and over channels.
 
+use rayon::prelude::*;
+
 /// Side of the SSIM window.
 pub const SSIM_WINDOW: usize = 11;
 /// Standard deviation of the SSIM Gaussian window, in pixels.
@@ -89,12 +91,15 @@ pub fn ssim_channels(a: &[f32], b: &[f32], width: usize, height: usize, channels
     let c2 = SSIM_K2 * SSIM_K2;
     let ow = width - (SSIM_WINDOW - 1);
     let oh = height - (SSIM_WINDOW - 1);
-    // Horizontal pass: five moments per (row, output column), then vertical pass.
+    // Horizontal pass: five moments per (row, output column), then the vertical pass. Rows
+    // run in parallel; the per-row sums are added in a fixed order, so the result does not
+    // depend on the thread count.
     let mut hor = vec![[0.0f64; 5]; height * ow];
+    let mut row_sums = vec![0.0f64; oh];
     let mut total = 0.0f64;
     for c in 0..channels {
-        for y in 0..height {
-            for x in 0..ow {
+        hor.par_chunks_mut(ow).enumerate().for_each(|(y, row)| {
+            for (x, out) in row.iter_mut().enumerate() {
                 let mut m = [0.0f64; 5];
                 for (i, w) in k.iter().enumerate() {
                     let idx = (y * width + x + i) * channels + c;
@@ -106,21 +111,23 @@ pub fn ssim_channels(a: &[f32], b: &[f32], width: usize, height: usize, channels
                     m[3] += w * q * q;
                     m[4] += w * p * q;
                 }
-                hor[y * ow + x] = m;
+                *out = m;
             }
-        }
-        for y in 0..oh {
+        });
+        row_sums.par_iter_mut().enumerate().for_each(|(y, sum)| {
+            *sum = 0.0;
             for x in 0..ow {
                 let mut m = [0.0f64; 5];
                 for (j, w) in k.iter().enumerate() {
                     let h = &hor[(y + j) * ow + x];
-                    for t in 0..5 {
-                        m[t] += w * h[t];
+                    for (mt, ht) in m.iter_mut().zip(h) {
+                        *mt += w * ht;
                     }
                 }
-                total += ssim_from_moments(m, c1, c2);
+                *sum += ssim_from_moments(m, c1, c2);
             }
-        }
+        });
+        total += row_sums.iter().sum::<f64>();
     }
     total / (ow * oh * channels) as f64
 }
