@@ -44,8 +44,9 @@ type BoxError = Box<dyn std::error::Error>;
 
 fn main() {
     if let Err(e) = run() {
-        // A panic shows the message verbatim in cargo's "failed to run custom build command".
-        panic!("\n\nhimap-vulkan build script: {e}\n");
+        // cargo shows the build script's stderr when it fails.
+        eprintln!("\nerror: himap-vulkan build script: {e}\n");
+        std::process::exit(1);
     }
 }
 
@@ -56,7 +57,19 @@ fn run() -> Result<(), BoxError> {
     check_tool("spirv-val")?;
 
     let manifest = PathBuf::from(env::var("CARGO_MANIFEST_DIR")?);
-    let shader_crate = manifest.join("..").join("shaders");
+    let root = manifest.join("..");
+    let shader_crate = root.join("shaders");
+    // spirv-builder reports the shader and himap-core sources; manifests and the toolchain
+    // pin matter too.
+    for f in [
+        "Cargo.toml",
+        "Cargo.lock",
+        "rust-toolchain.toml",
+        "shaders/Cargo.toml",
+        "core/Cargo.toml",
+    ] {
+        println!("cargo::rerun-if-changed={}", root.join(f).display());
+    }
     let mut builder = SpirvBuilder::new(&shader_crate, TARGET)
         .capability(Capability::Int64)
         .capability(Capability::Int64Atomics)
@@ -85,7 +98,7 @@ fn run() -> Result<(), BoxError> {
     let mut module = rspirv::dr::load_bytes(&raw)
         .map_err(|e| format!("parsing {} with rspirv: {e}", raw_path.display()))?;
     check_forbidden(&module, FROM_SOURCE)?;
-    decorate_no_contraction(&mut module);
+    let added_before = decorate_no_contraction(&mut module);
     let out_dir = PathBuf::from(env::var("OUT_DIR")?);
     let unopt_path = out_dir.join("himap_shaders.unopt.spv");
     std::fs::write(&unopt_path, to_bytes(&module))?;
@@ -98,7 +111,7 @@ fn run() -> Result<(), BoxError> {
     let mut module = rspirv::dr::load_bytes(std::fs::read(&spv_path)?)
         .map_err(|e| format!("parsing {} with rspirv: {e}", spv_path.display()))?;
     check_forbidden(&module, FROM_OPTIMIZER)?;
-    decorate_no_contraction(&mut module);
+    let added_after = decorate_no_contraction(&mut module);
     let entry_points = entry_point_names(&module);
     for name in &result.entry_points {
         if !entry_points.contains(name) {
@@ -121,7 +134,8 @@ fn run() -> Result<(), BoxError> {
     std::fs::write(out_dir.join("shader_info.rs"), info)?;
 
     let summary = format!(
-        "shaders: {} entry points ({}), {decorations} NoContraction decorations, {} bytes -> {}",
+        "shaders: {} entry points ({}); NoContraction: {added_before} added before spirv-opt, \
+         {added_after} after, {decorations} in the module; {} bytes -> {}",
         entry_points.len(),
         entry_points.join(", "),
         bytes.len(),
@@ -274,10 +288,12 @@ fn is_float_arith(op: Op) -> bool {
     )
 }
 
-/// GLSL.std.450 instructions that are bit-exact on every Vulkan implementation (integer ops,
-/// sign/abs bit operations, floor/ceil/trunc/round-even) or exact for non-NaN inputs
-/// (min/max/clamp). Everything else in the set is an approximation (Vulkan allows ULP errors;
-/// lavapipe's `Exp` flushes subnormals) or may be fused (`Fma`, `FMix`, `SmoothStep`, ...).
+/// GLSL.std.450 instructions that give the CPU's bits on every Vulkan implementation: integer
+/// min/max/clamp and bit scans, `FAbs`, `Floor`, `Ceil`, `Trunc`, `RoundEven`, and the
+/// NaN-defined `NMin`/`NMax`/`NClamp`. Everything else is an approximation (Vulkan allows ULP
+/// errors; lavapipe's `Exp` flushes subnormals), may be fused (`Fma`, `FMix`, `SmoothStep`),
+/// or leaves NaN/halfway cases to the driver (`FMin`/`FMax`/`FClamp` from `f32::min`/`max`/
+/// `clamp`, `FSign`, `Round`).
 fn glsl_name(n: u32) -> Option<(&'static str, bool)> {
     const NAMES: [&str; 82] = [
         "?",
@@ -363,8 +379,8 @@ fn glsl_name(n: u32) -> Option<(&'static str, bool)> {
         "NMax",
         "NClamp",
     ];
-    const EXACT: [u32; 23] = [
-        2, 3, 4, 5, 6, 7, 8, 9, 37, 38, 39, 40, 41, 42, 43, 44, 45, 73, 74, 75, 79, 80, 81,
+    const EXACT: [u32; 18] = [
+        2, 3, 4, 5, 8, 9, 38, 39, 41, 42, 44, 45, 73, 74, 75, 79, 80, 81,
     ];
     let name = NAMES.get(n as usize)?;
     Some((name, EXACT.contains(&n)))
@@ -372,9 +388,10 @@ fn glsl_name(n: u32) -> Option<(&'static str, bool)> {
 
 const FROM_SOURCE: &str = "GLSL.std.450 built-ins come from calls into the `libm` crate \
      (rust-gpu replaces e.g. `libm::expf` with `Exp`), from glam/f32 methods that go through \
-     libm, or from `mul_add` (`Fma`); OpFRem/OpFMod from `%` on floats. Kernels must use \
-     `himap_core::math` (vendored plain-f32 math) instead; see DESIGN.md, \"Kernels that must \
-     compile for both CPU and SPIR-V\".";
+     libm, from `mul_add` (`Fma`) or from `f32::min`/`max`/`clamp`/`signum`/`round`; \
+     OpFRem/OpFMod from `%` on floats. Kernels must use `himap_core::math` (vendored \
+     plain-f32 math) instead; see DESIGN.md, \"Kernels that must compile for both CPU and \
+     SPIR-V\".";
 const FROM_OPTIMIZER: &str = "They were not in rust-gpu's output, so spirv-opt created them \
      (the NoContraction decorations should prevent fusion; check the SPIRV-Tools version).";
 

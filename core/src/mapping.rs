@@ -1,0 +1,250 @@
+//! The per-pixel mapping kernel of Hi-Map's online optimisation: render one pixel of a window
+//! frame, take the L1 colour loss against the frame and DIM-SLAM's warping loss through the
+//! rendered depth, and back-propagate both into the field. Every backend runs
+//! [`pixel_train`] once per sampled pixel.
+//!
+//! Images of the frames are stored as packed RGBA8 (`u32` per pixel, R in the low byte) in
+//! "slots"; the window names which slot each window frame uses. Colour values are
+//! `byte / 255` (exact and identical on every target).
+
+use crate::camera::{Intrinsics, Pose};
+use crate::model::{
+    ray_backward, ray_forward, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
+    SampleScratch,
+};
+use crate::warp::{warp_pixel, FrameImages, WarpConfig, MAX_WINDOW};
+use crate::ParamRead;
+
+/// Packs an RGB colour in [0, 1] into RGBA8 (alpha 255), rounding to nearest.
+#[inline]
+pub fn pack_rgba8(rgb: [f32; 3]) -> u32 {
+    let q = |x: f32| -> u32 {
+        let v = crate::math::clamp(x, 0.0, 1.0) * 255.0 + 0.5;
+        v as u32
+    };
+    q(rgb[0]) | (q(rgb[1]) << 8) | (q(rgb[2]) << 16) | (255 << 24)
+}
+
+/// Unpacks RGBA8 into RGB in [0, 1] as `byte * (1/255)`: a multiplication (exact IEEE
+/// rounding on every device) rather than a division (real GPUs may be 2.5 ULP off).
+#[inline(always)]
+pub fn unpack_rgba8(p: u32) -> [f32; 3] {
+    const INV: f32 = 1.0 / 255.0;
+    [
+        (p & 0xff) as f32 * INV,
+        ((p >> 8) & 0xff) as f32 * INV,
+        ((p >> 16) & 0xff) as f32 * INV,
+    ]
+}
+
+/// The frames of a mapping window, read from slot storage: window frame `i` lives in slot
+/// `slots[i]` of `pixels` (slot-major, then row-major RGBA8).
+pub struct WindowImages<'a, P: SlotPixels + ?Sized> {
+    pub width: u32,
+    pub height: u32,
+    pub slots: [u32; MAX_WINDOW],
+    pub pixels: &'a P,
+}
+
+/// Read access to slot-major packed RGBA8 pixels (implemented for `[u32]`; a GPU backend
+/// implements it over its storage buffer).
+pub trait SlotPixels {
+    fn pixel(&self, i: usize) -> u32;
+}
+
+impl SlotPixels for [u32] {
+    #[inline(always)]
+    fn pixel(&self, i: usize) -> u32 {
+        if i < self.len() {
+            self[i]
+        } else {
+            0
+        }
+    }
+}
+
+impl<P: SlotPixels + ?Sized> FrameImages for WindowImages<'_, P> {
+    #[inline(always)]
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
+    #[inline(always)]
+    fn texel(&self, frame: usize, x: u32, y: u32) -> [f32; 3] {
+        let f = if frame < MAX_WINDOW { frame } else { 0 };
+        let slot = self.slots[f] as usize;
+        let i = (slot * self.height as usize + y as usize) * self.width as usize + x as usize;
+        unpack_rgba8(self.pixels.pixel(i))
+    }
+}
+
+/// One sampled pixel: window frame index and integer pixel coordinates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[repr(C)]
+pub struct PixelSample {
+    pub frame: u32,
+    pub u: u32,
+    pub v: u32,
+}
+
+/// Loss weights and switches of one mapping iteration.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MappingLoss {
+    /// Hi-Map's lambda_c (0.1 during initialisation, 0.001 online).
+    pub lambda_color: f32,
+    /// Hi-Map's lambda_w (1.0).
+    pub lambda_warp: f32,
+    /// Scale of every pixel's colour term (1 / pixels: a mean over the batch).
+    pub color_scale: f32,
+    /// Scale of every pixel's warping term (1 / pixels: a mean over sampled pixels of
+    /// DIM-SLAM's per-pixel sum over valid pairs).
+    pub warp_scale: f32,
+    /// Whether the colour loss reaches the geometry (Hi-Map: only for the first 250
+    /// initialisation iterations).
+    pub color_to_geometry: bool,
+    /// Stratified jitter seed of this iteration.
+    pub seed: u32,
+    pub warp: WarpConfig,
+}
+
+/// What one sampled pixel produced.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct PixelResult {
+    pub color: [f32; 3],
+    pub depth: f32,
+    pub opacity: f32,
+    /// Scaled colour loss of the pixel.
+    pub color_loss: f32,
+    /// Scaled warping loss of the pixel.
+    pub warp_loss: f32,
+    /// Valid warp pairs (0 when fewer than `min_views`).
+    pub warp_views: u32,
+}
+
+/// The window every pixel of an iteration refers to.
+pub struct WindowView<'a, I: FrameImages + ?Sized> {
+    pub k: Intrinsics,
+    /// Camera-to-world poses of the window frames.
+    pub poses: &'a [Pose],
+    pub images: &'a I,
+}
+
+/// Forward, losses and backward for one sampled pixel. `pixel_id` seeds the stratified jitter
+/// (use the pixel's index in the batch).
+#[allow(clippy::too_many_arguments)]
+pub fn pixel_train<P: ParamRead + ?Sized, I: FrameImages + ?Sized, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    window: &WindowView<'_, I>,
+    px: PixelSample,
+    pixel_id: u32,
+    loss: &MappingLoss,
+    cache: &mut RayCache,
+    scratch: &mut SampleScratch,
+    sink: &mut S,
+) -> PixelResult {
+    let n = window.poses.len();
+    let f = px.frame as usize;
+    if f >= n {
+        return PixelResult::default();
+    }
+    let pose = &window.poses[f];
+    let (origin, dir) = pose.ray(&window.k, px.u as f32, px.v as f32);
+    let target = window.images.texel(f, px.u, px.v);
+    let ray = Ray {
+        origin,
+        dir,
+        target,
+        target_depth: 0.0,
+    };
+    ray_forward(layout, params, &ray, pixel_id, loss.seed, true, cache, scratch);
+    let out = cache.out;
+    let (l1, d_c) = crate::loss::l1_color(out.color, target);
+    let kc = loss.color_scale * loss.lambda_color;
+    let d_color = [kc * d_c[0], kc * d_c[1], kc * d_c[2]];
+    let mut result = PixelResult {
+        color: out.color,
+        depth: out.depth,
+        opacity: out.opacity,
+        color_loss: kc * l1,
+        warp_loss: 0.0,
+        warp_views: 0,
+    };
+    let mut d_depth = 0.0;
+    if loss.lambda_warp != 0.0 && cache.n > 0 {
+        let w = warp_pixel(
+            &loss.warp,
+            &window.k,
+            window.poses,
+            n,
+            f,
+            px.u,
+            px.v,
+            out.depth,
+            window.images,
+        );
+        let kw = loss.warp_scale * loss.lambda_warp;
+        result.warp_loss = kw * w.loss;
+        result.warp_views = w.valid_views;
+        d_depth = kw * w.d_depth;
+    }
+    ray_backward(
+        layout,
+        params,
+        &ray,
+        d_color,
+        d_depth,
+        0.0,
+        loss.color_to_geometry,
+        cache,
+        scratch,
+        sink,
+    );
+    result
+}
+
+/// Convenience: the [`LossConfig`] of a plain colour step equivalent to a mapping loss without
+/// the warping term (used by tests).
+pub fn colour_only(loss: &MappingLoss) -> LossConfig {
+    LossConfig {
+        lambda_color: loss.lambda_color,
+        lambda_depth: 0.0,
+        ray_scale: loss.color_scale,
+        color_to_geometry: loss.color_to_geometry,
+        seed: loss.seed,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rgba8_round_trip_is_exact_on_byte_values() {
+        for b in 0..=255u32 {
+            let p = b | ((255 - b) << 8) | ((b / 2) << 16) | (255 << 24);
+            assert_eq!(pack_rgba8(unpack_rgba8(p)), p);
+        }
+        assert_eq!(pack_rgba8([2.0, -1.0, 0.5]), 255 | (128 << 16) | (255 << 24));
+    }
+
+    #[test]
+    fn window_images_reads_the_right_slot() {
+        let (w, h) = (4u32, 3u32);
+        let mut px = std::vec![0u32; (w * h * 3) as usize];
+        // slot 2, pixel (1, 2)
+        px[((2 * h + 2) * w + 1) as usize] = 51 | (102 << 8) | (255 << 16);
+        let mut slots = [0u32; MAX_WINDOW];
+        slots[1] = 2;
+        let imgs = WindowImages {
+            width: w,
+            height: h,
+            slots,
+            pixels: &px[..],
+        };
+        let inv = 1.0f32 / 255.0;
+        assert_eq!(imgs.texel(1, 1, 2), [51.0 * inv, 102.0 * inv, 255.0 * inv]);
+        assert!((imgs.texel(1, 1, 2)[0] - 0.2).abs() < 1e-6);
+        assert_eq!(imgs.texel(0, 1, 2), [0.0, 0.0, 0.0]);
+    }
+}
