@@ -23,6 +23,7 @@ pub const MAX_CONTRIBUTION: f32 = (1u32 << 22) as f32;
 /// Converts one gradient contribution to fixed point. NaN becomes 0 (so one bad sample cannot
 /// poison a whole buffer on the GPU, where the conversion of NaN is undefined).
 #[inline(always)]
+#[allow(clippy::manual_clamp)] // f32::clamp differs on NaN and is not a kernel-safe primitive
 pub fn to_fixed(g: f32) -> i64 {
     // `g != g` is the NaN test that compiles to plain comparisons on every target.
     #[allow(clippy::eq_op)]

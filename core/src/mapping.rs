@@ -157,7 +157,9 @@ pub fn pixel_train<P: ParamRead + ?Sized, I: FrameImages + ?Sized, S: ModelGradS
         target,
         target_depth: 0.0,
     };
-    ray_forward(layout, params, &ray, pixel_id, loss.seed, true, cache, scratch);
+    ray_forward(
+        layout, params, &ray, pixel_id, loss.seed, true, cache, scratch,
+    );
     let out = cache.out;
     let (l1, d_c) = crate::loss::l1_color(out.color, target);
     let kc = loss.color_scale * loss.lambda_color;
@@ -225,7 +227,10 @@ mod tests {
             let p = b | ((255 - b) << 8) | ((b / 2) << 16) | (255 << 24);
             assert_eq!(pack_rgba8(unpack_rgba8(p)), p);
         }
-        assert_eq!(pack_rgba8([2.0, -1.0, 0.5]), 255 | (128 << 16) | (255 << 24));
+        assert_eq!(
+            pack_rgba8([2.0, -1.0, 0.5]),
+            255 | (128 << 16) | (255 << 24)
+        );
     }
 
     #[test]

@@ -492,6 +492,7 @@ fn point_on_ray(ray: &Ray, t: f32) -> [f32; 3] {
 /// Samples a ray inside the scene box, evaluates the field and renders colour, depth and
 /// opacity into `cache`. A ray that misses the box renders nothing (n = 0, all zeros).
 /// `jitter` selects stratified jitter (training) or bin centres (rendering and evaluation).
+#[allow(clippy::too_many_arguments)]
 pub fn ray_forward<P: ParamRead + ?Sized>(
     layout: &ModelLayout,
     params: &Params<'_, P>,
@@ -562,6 +563,7 @@ pub struct RayResult {
 /// Forward, loss and backward for one ray. The loss of the ray is
 /// `ray_scale * (lambda_color * sum_c |C_c - target_c| + lambda_depth * |D - target_depth|)`
 /// (the depth term only when `target_depth > 0`). Gradients go to `sink`.
+#[allow(clippy::too_many_arguments)]
 pub fn ray_train<P: ParamRead + ?Sized, S: ModelGradSink>(
     layout: &ModelLayout,
     params: &Params<'_, P>,
@@ -581,7 +583,7 @@ pub fn ray_train<P: ParamRead + ?Sized, S: ModelGradSink>(
     let mut d_depth = 0.0;
     if ray.target_depth > 0.0 && loss.lambda_depth != 0.0 {
         let diff = out.depth - ray.target_depth;
-        value = value + loss.lambda_depth * math::abs(diff);
+        value += loss.lambda_depth * math::abs(diff);
         let sign = if diff > 0.0 {
             1.0
         } else if diff < 0.0 {

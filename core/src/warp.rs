@@ -230,13 +230,18 @@ fn sample_bilinear<I: FrameImages + ?Sized>(
     let (xc, in_x) = clamp_coord(pu, (w - 1) as f32);
     let (yc, in_y) = clamp_coord(pv, (h - 1) as f32);
     // xc, yc are finite and >= 0, so the truncating cast is floor.
+    // (rust-gpu 0.11 does not implement `saturating_sub`.)
+    #[allow(clippy::implicit_saturating_sub)]
+    let wmax = if w >= 2 { w - 2 } else { 0 };
+    #[allow(clippy::implicit_saturating_sub)]
+    let hmax = if h >= 2 { h - 2 } else { 0 };
     let mut x0 = xc as u32;
-    if x0 > w.saturating_sub(2) {
-        x0 = w.saturating_sub(2);
+    if x0 > wmax {
+        x0 = wmax;
     }
     let mut y0 = yc as u32;
-    if y0 > h.saturating_sub(2) {
-        y0 = h.saturating_sub(2);
+    if y0 > hmax {
+        y0 = hmax;
     }
     let x1 = if x0 + 1 < w { x0 + 1 } else { x0 };
     let y1 = if y0 + 1 < h { y0 + 1 } else { y0 };

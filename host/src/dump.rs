@@ -69,7 +69,7 @@ pub fn small_config(render_mode: RenderMode) -> ModelConfig {
 
 /// Random rays from inside the box towards random directions, with synthetic targets.
 pub fn random_rays(n: usize, seed: u64) -> Vec<Ray> {
-    let mut rng = SplitMix::new(seed ^ 0x5EED_0F_7A75);
+    let mut rng = SplitMix::new(seed ^ 0x5E_ED0F_7A75);
     let mut u = |lo: f32, hi: f32| lo + (hi - lo) * rng.unit();
     (0..n)
         .map(|_| {
