@@ -1,0 +1,140 @@
+//! `himap bench`: throughput of the backends at the small and the paper configuration.
+//! A benchmark that prints numbers, not a timed test.
+
+use std::time::Instant;
+
+use himap_core::model::{LossConfig, ModelConfig, ModelLayout, Ray, RayResult};
+use himap_core::render::RenderMode;
+use himap_core::rng::SplitMix;
+use himap_core::step::{paper_adam, Backend};
+use himap_core::Aabb;
+
+use crate::backend::{ModelData, ParallelCpuBackend};
+
+/// One measured configuration.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct BenchRow {
+    pub backend: String,
+    pub config: String,
+    pub params: usize,
+    /// Parameters + Adam moments (f32) + fixed-point gradients (i64), bytes.
+    pub state_bytes: usize,
+    pub rays: usize,
+    pub samples_per_ray: u32,
+    pub forward_samples_per_s: f64,
+    pub train_samples_per_s: f64,
+    pub train_ms_per_step: f64,
+}
+
+/// Random rays from inside `aabb` (shrunk by 20%) in random directions.
+pub fn rays_in(aabb: &Aabb, n: usize, seed: u64) -> Vec<Ray> {
+    let mut r = SplitMix::new(seed);
+    (0..n)
+        .map(|_| {
+            let mut o = [0.0f32; 3];
+            for a in 0..3 {
+                let c = 0.5 * (aabb.min[a] + aabb.max[a]);
+                let h = 0.4 * (aabb.max[a] - aabb.min[a]);
+                o[a] = c + h * (2.0 * r.unit() - 1.0);
+            }
+            let d = [
+                2.0 * r.unit() - 1.0,
+                2.0 * r.unit() - 1.0,
+                2.0 * r.unit() - 1.0,
+            ];
+            Ray {
+                origin: o,
+                dir: d,
+                target: [r.unit(), r.unit(), r.unit()],
+                target_depth: 0.0,
+            }
+        })
+        .collect()
+}
+
+/// The configurations benchmarked: `small` (the dump-step model) and `paper` (the paper's
+/// grids and decoders over a 6 x 6 x 3 m room).
+pub fn configs() -> Vec<(&'static str, ModelConfig)> {
+    vec![
+        ("small", crate::dump::small_config(RenderMode::SdfDensity)),
+        (
+            "paper (6x6x3 m room)",
+            ModelConfig::paper(Aabb::new([-3.0, -3.0, -1.5], [3.0, 3.0, 1.5])),
+        ),
+    ]
+}
+
+/// Measures the multi-threaded CPU backend with `threads` threads (0 = all cores).
+pub fn bench_cpu(
+    name: &str,
+    cfg: &ModelConfig,
+    threads: usize,
+    rays: usize,
+    steps: usize,
+) -> anyhow::Result<BenchRow> {
+    let layout = ModelLayout::new(cfg)?;
+    let data = ModelData::new(layout, 1)?;
+    let mut be = ParallelCpuBackend::new(data, paper_adam(), threads)?;
+    let batch = rays_in(&cfg.aabb, rays, 7);
+    let mut res = vec![RayResult::default(); rays];
+    let samples = (rays * cfg.samples as usize) as f64;
+    be.render(&batch, &mut res)?; // warm-up
+    let t = Instant::now();
+    for _ in 0..steps {
+        be.render(&batch, &mut res)?;
+    }
+    let fwd = t.elapsed().as_secs_f64() / steps as f64;
+    let loss = LossConfig {
+        lambda_color: 1.0,
+        lambda_depth: 0.0,
+        ray_scale: 1.0 / rays as f32,
+        color_to_geometry: true,
+        seed: 0,
+    };
+    be.train_step(&batch, &loss, &mut res)?;
+    let t = Instant::now();
+    for s in 0..steps {
+        let l = LossConfig {
+            seed: s as u32,
+            ..loss
+        };
+        be.train_step(&batch, &l, &mut res)?;
+    }
+    let train = t.elapsed().as_secs_f64() / steps as f64;
+    let p = layout.param_count();
+    Ok(BenchRow {
+        backend: be.name().to_string(),
+        config: name.to_string(),
+        params: p,
+        state_bytes: p * (3 * 4 + 8),
+        rays,
+        samples_per_ray: cfg.samples,
+        forward_samples_per_s: samples / fwd,
+        train_samples_per_s: samples / train,
+        train_ms_per_step: train * 1e3,
+    })
+}
+
+/// Prints a table row.
+pub fn print_row(r: &BenchRow) {
+    println!(
+        "{:<22} {:<22} {:>10} {:>9.1} MB {:>6} x {:<3} {:>12.0} {:>12.0} {:>10.1}",
+        r.backend,
+        r.config,
+        r.params,
+        r.state_bytes as f64 / 1e6,
+        r.rays,
+        r.samples_per_ray,
+        r.forward_samples_per_s,
+        r.train_samples_per_s,
+        r.train_ms_per_step
+    );
+}
+
+/// Prints the table header.
+pub fn print_header() {
+    println!(
+        "{:<22} {:<22} {:>10} {:>12} {:>12} {:>12} {:>12} {:>10}",
+        "backend", "config", "params", "state", "rays x spr", "fwd smp/s", "train smp/s", "ms/step"
+    );
+}
