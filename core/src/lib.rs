@@ -19,6 +19,7 @@ pub mod error;
 pub mod fixed;
 pub mod grid;
 pub mod loss;
+pub mod mapper;
 pub mod mapping;
 pub mod math;
 pub mod mlp;

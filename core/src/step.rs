@@ -8,12 +8,17 @@
 //! of the per-ray losses taken in ray order (f32), so it is also independent of scheduling.
 
 use crate::adam::{self, AdamConfig, AdamStep};
+use crate::camera::{Intrinsics, Pose};
 use crate::error::check_len;
 use crate::fixed;
+use crate::mapping::{
+    pixel_train, MappingLoss, PixelResult, PixelSample, WindowImages, WindowView,
+};
 use crate::model::{
     ray_forward, ray_train, Group, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
     RayResult, SampleScratch, NUM_GROUPS,
 };
+use crate::warp::MAX_WINDOW;
 use crate::Error;
 
 /// Parameters, Adam moments and the fixed-point gradient of one group, all caller-owned.
@@ -88,6 +93,106 @@ pub trait Backend {
         data: &[f32],
         reset_adam: bool,
     ) -> Result<(), Self::Error>;
+    /// Image size and slot count fixed at construction (zero slots when the backend was built
+    /// without image storage).
+    fn image_store(&self) -> ImageStore;
+    /// Stores a frame's packed RGBA8 image (`width * height` pixels, row-major, R in the low
+    /// byte, see [`crate::mapping::pack_rgba8`]) in image slot `slot`.
+    fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), Self::Error>;
+    /// One mapping iteration: zero the gradients, [`pixel_train`] for every pixel
+    /// (`pixel_id` = its index in `batch.pixels`), Adam. `results[i]` receives pixel i's
+    /// outputs; the returned loss is the sum of the pixels' colour and warp losses in pixel
+    /// order.
+    fn map_step(
+        &mut self,
+        batch: &MapBatch<'_>,
+        results: &mut [PixelResult],
+    ) -> Result<StepStats, Self::Error>;
+    /// Changes a group's Adam learning rate (moments are kept).
+    fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), Self::Error>;
+}
+
+/// Size of the image slots a backend stores frames in (fixed at construction).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub struct ImageStore {
+    pub width: u32,
+    pub height: u32,
+    pub slots: u32,
+}
+
+impl ImageStore {
+    /// Pixels in one slot.
+    pub const fn slot_len(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    /// `u32` words of the whole store (`slots * width * height`).
+    pub const fn total_len(&self) -> usize {
+        self.slot_len() * self.slots as usize
+    }
+}
+
+/// One mapping iteration's inputs: the window (intrinsics, camera-to-world poses, the image
+/// slot of each window frame), the sampled pixels (their `frame` indexes the window) and the
+/// loss settings.
+#[derive(Clone, Copy, Debug)]
+pub struct MapBatch<'a> {
+    pub k: Intrinsics,
+    pub poses: &'a [Pose],
+    pub slots: &'a [u32],
+    pub pixels: &'a [PixelSample],
+    pub loss: MappingLoss,
+}
+
+/// Validates a batch against the image store and returns the window's slot table.
+pub fn window_slots(batch: &MapBatch<'_>, store: &ImageStore) -> Result<[u32; MAX_WINDOW], Error> {
+    let n = batch.poses.len();
+    check_len("window slots", batch.slots.len(), n)?;
+    if n == 0 {
+        return Err(Error::InvalidConfig("mapping window is empty"));
+    }
+    if n > MAX_WINDOW {
+        return Err(Error::Capacity {
+            what: "mapping window frames",
+            needed: n as u64,
+            capacity: MAX_WINDOW as u64,
+        });
+    }
+    if batch.k.width != store.width || batch.k.height != store.height {
+        return Err(Error::InvalidConfig(
+            "map_step: intrinsics size differs from the image store",
+        ));
+    }
+    let mut out = [0u32; MAX_WINDOW];
+    let mut i = 0;
+    while i < n {
+        if batch.slots[i] >= store.slots {
+            return Err(Error::Capacity {
+                what: "image slot index",
+                needed: batch.slots[i] as u64 + 1,
+                capacity: store.slots as u64,
+            });
+        }
+        out[i] = batch.slots[i];
+        i += 1;
+    }
+    batch.loss.warp.validate()?;
+    Ok(out)
+}
+
+/// Step statistics of a mapping iteration (loss summed in pixel order).
+pub fn summarize_pixels(results: &[PixelResult], t: u32) -> StepStats {
+    let mut loss = 0.0f32;
+    let mut hit = 0u32;
+    for r in results {
+        loss += r.color_loss + r.warp_loss;
+        hit += (r.opacity > 0.0) as u32;
+    }
+    StepStats {
+        loss,
+        rays_hit: hit,
+        t,
+    }
 }
 
 /// The single-threaded reference backend: every other backend must match it bit for bit.
@@ -96,6 +201,8 @@ pub struct CpuBackend<'a> {
     groups: [GroupState<'a>; NUM_GROUPS],
     adam: [AdamConfig; NUM_GROUPS],
     t: u32,
+    store: ImageStore,
+    images: &'a mut [u32],
 }
 
 impl<'a> CpuBackend<'a> {
@@ -120,7 +227,70 @@ impl<'a> CpuBackend<'a> {
             groups,
             adam,
             t: 0,
+            store: ImageStore::default(),
+            images: &mut [],
         })
+    }
+
+    /// Adds image slot storage: `images` must hold exactly `store.total_len()` words.
+    pub fn with_images(mut self, store: ImageStore, images: &'a mut [u32]) -> Result<Self, Error> {
+        check_len("image slots", images.len(), store.total_len())?;
+        self.store = store;
+        self.images = images;
+        Ok(self)
+    }
+
+    /// Forward, losses and backward of a mapping batch, adding into the gradient buffers (not
+    /// zeroed).
+    pub fn accumulate_pixels(
+        &mut self,
+        batch: &MapBatch<'_>,
+        results: &mut [PixelResult],
+    ) -> Result<StepStats, Error> {
+        check_len("results", results.len(), batch.pixels.len())?;
+        let slots = window_slots(batch, &self.store)?;
+        let [g0, g1, g2, g3, g4] = &mut self.groups;
+        let params = Params {
+            geometry_grid: &*g0.params,
+            appearance_grid: &*g1.params,
+            geometry_mlp: &*g2.params,
+            appearance_mlp: &*g3.params,
+            beta: g4.params[0],
+        };
+        let mut sink = FixedModelSink::new([
+            &mut *g0.grad,
+            &mut *g1.grad,
+            &mut *g2.grad,
+            &mut *g3.grad,
+            &mut *g4.grad,
+        ]);
+        let images = WindowImages {
+            width: self.store.width,
+            height: self.store.height,
+            slots,
+            pixels: &*self.images,
+        };
+        let window = WindowView {
+            k: batch.k,
+            poses: batch.poses,
+            images: &images,
+        };
+        let mut cache = RayCache::new();
+        let mut scratch = SampleScratch::new();
+        for (i, (px, res)) in batch.pixels.iter().zip(results.iter_mut()).enumerate() {
+            *res = pixel_train(
+                &self.layout,
+                &params,
+                &window,
+                *px,
+                i as u32,
+                &batch.loss,
+                &mut cache,
+                &mut scratch,
+                &mut sink,
+            );
+        }
+        Ok(summarize_pixels(results, self.t))
     }
 
     /// Adam steps taken so far.
@@ -292,6 +462,47 @@ impl Backend for CpuBackend<'_> {
             st.m.fill(0.0);
             st.v.fill(0.0);
         }
+        Ok(())
+    }
+
+    fn image_store(&self) -> ImageStore {
+        self.store
+    }
+
+    fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), Error> {
+        let n = self.store.slot_len();
+        check_len("frame pixels", rgba.len(), n)?;
+        if slot >= self.store.slots {
+            return Err(Error::Capacity {
+                what: "image slot index",
+                needed: slot as u64 + 1,
+                capacity: self.store.slots as u64,
+            });
+        }
+        let o = slot as usize * n;
+        self.images[o..o + n].copy_from_slice(rgba);
+        Ok(())
+    }
+
+    fn map_step(
+        &mut self,
+        batch: &MapBatch<'_>,
+        results: &mut [PixelResult],
+    ) -> Result<StepStats, Error> {
+        self.zero_grads();
+        let mut stats = self.accumulate_pixels(batch, results)?;
+        self.apply_adam()?;
+        stats.t = self.t;
+        Ok(stats)
+    }
+
+    fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), Error> {
+        if !(lr.is_finite() && lr >= 0.0) {
+            return Err(Error::InvalidConfig(
+                "learning rate must be finite and >= 0",
+            ));
+        }
+        self.adam[group as usize].lr = lr;
         Ok(())
     }
 }

@@ -9,11 +9,14 @@ use std::sync::atomic::{AtomicI64, Ordering};
 
 use himap_core::adam::{self, AdamConfig, AdamStep};
 use himap_core::fixed;
+use himap_core::mapping::{pixel_train, PixelResult, WindowImages, WindowView};
 use himap_core::model::{
     color_at, ray_forward, ray_train, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout,
     Params, Ray, RayCache, RayResult, SampleScratch, NUM_GROUPS,
 };
-use himap_core::step::{summarize, Backend, StepStats};
+use himap_core::step::{
+    summarize, summarize_pixels, window_slots, Backend, ImageStore, MapBatch, StepStats,
+};
 use rayon::prelude::*;
 
 /// Rays per parallel work item.
@@ -81,6 +84,8 @@ pub struct ParallelCpuBackend {
     adam: [AdamConfig; NUM_GROUPS],
     pool: rayon::ThreadPool,
     name: String,
+    store: ImageStore,
+    images: Vec<u32>,
 }
 
 struct ParSink<'a> {
@@ -132,7 +137,97 @@ impl ParallelCpuBackend {
             adam,
             pool,
             name: format!("cpu ({n} threads)"),
+            store: ImageStore::default(),
+            images: Vec::new(),
         })
+    }
+
+    /// Adds image slot storage of the given size (zero-filled).
+    pub fn with_images(mut self, store: ImageStore) -> Self {
+        self.images = vec![0; store.total_len()];
+        self.store = store;
+        self
+    }
+
+    /// Mutable access to the model data (loading a saved map; the gradients are untouched).
+    pub fn data_mut(&mut self) -> &mut ModelData {
+        &mut self.data
+    }
+
+    /// The Adam settings per group.
+    pub fn adam(&self) -> &[AdamConfig; NUM_GROUPS] {
+        &self.adam
+    }
+
+    /// Forward, losses and backward of a mapping batch into the (not zeroed) gradient
+    /// buffers, with the chunking and integer accumulation of [`Self::accumulate`].
+    pub fn accumulate_pixels(
+        &mut self,
+        batch: &MapBatch<'_>,
+        results: &mut [PixelResult],
+    ) -> Result<StepStats, CpuError> {
+        himap_core::error::check_len("results", results.len(), batch.pixels.len())?;
+        let slots = window_slots(batch, &self.store)?;
+        let layout = self.data.layout;
+        let params = self.data.view();
+        let shared = &self.grads;
+        let lens = layout.group_lens();
+        let images = WindowImages {
+            width: self.store.width,
+            height: self.store.height,
+            slots,
+            pixels: &self.images[..],
+        };
+        let window = WindowView {
+            k: batch.k,
+            poses: batch.poses,
+            images: &images,
+        };
+        let window = &window;
+        self.pool.install(|| {
+            batch
+                .pixels
+                .par_chunks(CHUNK)
+                .zip(results.par_chunks_mut(CHUNK))
+                .enumerate()
+                .for_each(|(c, (pixels, results))| {
+                    let mut local = [
+                        vec![0i64; lens[2]],
+                        vec![0i64; lens[3]],
+                        vec![0i64; lens[4]],
+                    ];
+                    let mut cache = Box::new(RayCache::new());
+                    let mut scratch = Box::new(SampleScratch::new());
+                    {
+                        let mut sink = ParSink {
+                            shared,
+                            local: &mut local,
+                        };
+                        for (k, (px, res)) in pixels.iter().zip(results.iter_mut()).enumerate() {
+                            *res = pixel_train(
+                                &layout,
+                                &params,
+                                window,
+                                *px,
+                                (c * CHUNK + k) as u32,
+                                &batch.loss,
+                                &mut cache,
+                                &mut scratch,
+                                &mut sink,
+                            );
+                        }
+                    }
+                    for (j, buf) in local.iter().enumerate() {
+                        let dst = &shared[j + 2];
+                        for (i, &q) in buf.iter().enumerate() {
+                            if q != 0 {
+                                dst[i].fetch_add(q, Ordering::Relaxed);
+                            }
+                        }
+                    }
+                });
+        });
+        Ok(summarize_pixels(results, self.data.t))
     }
 
     /// The model data (parameters and Adam state).
@@ -365,6 +460,48 @@ impl Backend for ParallelCpuBackend {
             self.data.m[g].fill(0.0);
             self.data.v[g].fill(0.0);
         }
+        Ok(())
+    }
+
+    fn image_store(&self) -> ImageStore {
+        self.store
+    }
+
+    fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), CpuError> {
+        let n = self.store.slot_len();
+        himap_core::error::check_len("frame pixels", rgba.len(), n)?;
+        if slot >= self.store.slots {
+            return Err(himap_core::Error::Capacity {
+                what: "image slot index",
+                needed: slot as u64 + 1,
+                capacity: self.store.slots as u64,
+            }
+            .into());
+        }
+        let o = slot as usize * n;
+        self.images[o..o + n].copy_from_slice(rgba);
+        Ok(())
+    }
+
+    fn map_step(
+        &mut self,
+        batch: &MapBatch<'_>,
+        results: &mut [PixelResult],
+    ) -> Result<StepStats, CpuError> {
+        self.zero_grads();
+        let mut stats = self.accumulate_pixels(batch, results)?;
+        self.apply_adam();
+        stats.t = self.data.t;
+        Ok(stats)
+    }
+
+    fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), CpuError> {
+        if !(lr.is_finite() && lr >= 0.0) {
+            return Err(
+                himap_core::Error::InvalidConfig("learning rate must be finite and >= 0").into(),
+            );
+        }
+        self.adam[group as usize].lr = lr;
         Ok(())
     }
 }

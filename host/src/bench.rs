@@ -32,10 +32,10 @@ pub fn rays_in(aabb: &Aabb, n: usize, seed: u64) -> Vec<Ray> {
     (0..n)
         .map(|_| {
             let mut o = [0.0f32; 3];
-            for a in 0..3 {
+            for (a, o) in o.iter_mut().enumerate() {
                 let c = 0.5 * (aabb.min[a] + aabb.max[a]);
                 let h = 0.4 * (aabb.max[a] - aabb.min[a]);
-                o[a] = c + h * (2.0 * r.unit() - 1.0);
+                *o = c + h * (2.0 * r.unit() - 1.0);
             }
             let d = [
                 2.0 * r.unit() - 1.0,

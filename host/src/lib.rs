@@ -8,5 +8,8 @@ pub mod metrics;
 pub mod synth;
 
 pub mod backend;
+pub mod bench;
+pub mod config;
 pub mod dump;
+pub mod mapper_cli;
 pub mod train_demo;

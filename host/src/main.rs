@@ -19,8 +19,55 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Train a small field on a built-in analytic target and print the loss going down.
+    /// Map a posed RGB sequence (Replica or TUM layout) and write metrics.csv, summary.json,
+    /// mesh.ply, renders/ and map.safetensors into --out.
+    Map {
+        /// Dataset folder.
+        dataset: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        /// Configuration file (TOML; missing fields take the preset's values).
+        #[arg(long, conflicts_with = "preset")]
+        config: Option<PathBuf>,
+        /// Preset: small (2-core CPU) or paper.
+        #[arg(long, default_value = "small")]
+        preset: String,
+        /// Backend: cpu (multi-threaded).
+        #[arg(long, default_value = "cpu")]
+        backend: String,
+        /// Frame selection start:end:stride over the source frames (e.g. 0:100:2).
+        #[arg(long)]
+        frames: Option<String>,
+        /// Resize the images to WxH (e.g. 320x240).
+        #[arg(long)]
+        resize: Option<String>,
+        /// Worker threads (0 = all cores).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Print the effective configuration (TOML) and exit.
+        #[arg(long)]
+        print_config: bool,
+    },
+    /// Synthesise a small room, map it with the small preset, evaluate and print a table.
     Demo {
+        /// Keep the room and the outputs here (default: a temporary directory).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Frames of the synthetic sequence.
+        #[arg(long, default_value_t = 60)]
+        frames: usize,
+        /// Image size WxH.
+        #[arg(long, default_value = "128x96")]
+        size: String,
+        /// Configuration file (default: the small preset).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Worker threads (0 = all cores).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+    },
+    /// Train a small field on a built-in analytic target and print the loss going down.
+    TrainDemo {
         /// Training steps.
         #[arg(long, default_value_t = 300)]
         steps: usize,
@@ -95,10 +142,128 @@ fn parse_render(s: &str) -> anyhow::Result<himap_core::render::RenderMode> {
     })
 }
 
+fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
+    let (w, h) = s
+        .split_once('x')
+        .with_context(|| format!("size '{s}': expected WxH, e.g. 320x240"))?;
+    let w: u32 = w
+        .trim()
+        .parse()
+        .with_context(|| format!("size '{s}': bad width"))?;
+    let h: u32 = h
+        .trim()
+        .parse()
+        .with_context(|| format!("size '{s}': bad height"))?;
+    if w < 2 || h < 2 {
+        anyhow::bail!("size '{s}': width and height must be at least 2");
+    }
+    Ok((w, h))
+}
+
+/// `a:b:stride`, each part optional (`10:`, `:100`, `::2`).
+fn parse_frames(s: &str) -> anyhow::Result<(usize, Option<usize>, usize)> {
+    let parts: Vec<&str> = s.split(':').collect();
+    if parts.is_empty() || parts.len() > 3 {
+        anyhow::bail!("--frames '{s}': expected start:end:stride");
+    }
+    let num = |p: &str, what: &str| -> anyhow::Result<Option<usize>> {
+        if p.trim().is_empty() {
+            Ok(None)
+        } else {
+            Ok(Some(
+                p.trim()
+                    .parse()
+                    .with_context(|| format!("--frames '{s}': bad {what}"))?,
+            ))
+        }
+    };
+    let start = num(parts[0], "start")?.unwrap_or(0);
+    let end = match parts.get(1) {
+        Some(p) => num(p, "end")?,
+        None => None,
+    };
+    let stride = match parts.get(2) {
+        Some(p) => num(p, "stride")?.unwrap_or(1),
+        None => 1,
+    };
+    if stride == 0 {
+        anyhow::bail!("--frames '{s}': stride must be at least 1");
+    }
+    if let Some(e) = end {
+        if e <= start {
+            anyhow::bail!("--frames '{s}': end must be greater than start");
+        }
+    }
+    Ok((start, end, stride))
+}
+
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
+        Command::Map {
+            dataset,
+            out,
+            config,
+            preset,
+            backend,
+            frames,
+            resize,
+            threads,
+            print_config,
+        } => {
+            let cfg = match &config {
+                Some(p) => himap::config::Config::from_file(p)?,
+                None => himap::config::Config::preset(&preset)?,
+            };
+            if print_config {
+                print!("{}", cfg.to_toml());
+                return Ok(());
+            }
+            if backend != "cpu" {
+                anyhow::bail!("unknown backend '{backend}': this build has cpu");
+            }
+            let (start, end, stride) = match &frames {
+                Some(f) => parse_frames(f)?,
+                None => (0, None, 1),
+            };
+            let resize = resize.as_deref().map(parse_size).transpose()?;
+            let opts = himap::mapper_cli::MapOptions {
+                dataset,
+                out: out.clone(),
+                config: cfg,
+                start,
+                end,
+                stride,
+                resize,
+                threads,
+                progress: true,
+            };
+            let s = himap::mapper_cli::run_map(&opts)?;
+            println!("{}", himap::mapper_cli::summary_table(&s));
+            println!("outputs in {}", out.display());
+        }
         Command::Demo {
+            out,
+            frames,
+            size,
+            config,
+            threads,
+        } => {
+            let cfg = match &config {
+                Some(p) => himap::config::Config::from_file(p)?,
+                None => himap::config::Config::small(),
+            };
+            let size = parse_size(&size)?;
+            println!(
+                "synthesising a {frames}-frame {}x{} room and mapping it with the small preset",
+                size.0, size.1
+            );
+            let (s, dir) =
+                himap::mapper_cli::run_demo(out.as_deref(), cfg, frames, size, threads, true)?;
+            println!("{}", himap::mapper_cli::summary_table(&s));
+            println!("outputs in {}", dir.display());
+        }
+        Command::TrainDemo {
             steps,
             rays,
             threads,

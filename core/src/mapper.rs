@@ -1,0 +1,1274 @@
+//! Hi-Map's online mapper: the sliding window, the keyframe cache, pixel sampling and the
+//! iteration schedule, generic over a [`Backend`]. No allocation: every capacity is a constant
+//! of this module, the per-iteration pixel buffers are caller-provided slices, and every
+//! problem is an error value.
+//!
+//! # Schedule (paper values in brackets, all from [`MapperConfig`])
+//!
+//! - Frames are pushed one at a time ([`Mapper::push_frame`]); each gets the next frame id
+//!   (0, 1, ...) and an image slot in the backend.
+//! - **Initialisation**: when `init_frames` [15] frames have been pushed, `init_iters` [1500]
+//!   iterations run on a window of exactly those frames, with `lambda_color_init` [0.1]; the
+//!   colour loss reaches the geometry only during the first `init_color_iters` [250]
+//!   iterations (detached rendering weights afterwards).
+//! - **Online updates**: after every `update_every` [5] further frames, the local set is cut
+//!   back to the `local_frames` [15] most recent frames: of the frames leaving it, the oldest
+//!   joins the keyframe cache and the others are dropped (their slots are freed). Then up to
+//!   `window_keyframes` [5] keyframes are chosen from the cache by view overlap with the newest
+//!   frame (below) and `iters` [20] iterations run on window = chosen keyframes (oldest first)
+//!   + local frames (oldest first), colour weight `lambda_color` [0.001], detached colour.
+//! - **Keyframe cache full** (`max_keyframes`): [`KeyframeOverflow::Thin`] drops every other
+//!   keyframe (keeps cache indices 0, 2, 4, ...: the cache keeps covering the whole
+//!   trajectory at half the density), [`KeyframeOverflow::DropOldest`] drops the oldest.
+//! - [`Mapper::flush`] runs a pending update at the end of a sequence (the initialisation on
+//!   the frames so far if there were fewer than `init_frames`).
+//!
+//! # Keyframe overlap (NICE-SLAM's selection, with rendered instead of sensor depth)
+//!
+//! `overlap_pixels` [100] random pixels of the newest frame are rendered (bin centres, no
+//! jitter); for each with positive opacity and depth `D`, `overlap_points` [16] points evenly
+//! spaced on camera depth `[0.8 D, D + 0.5 m]` are back-projected. A keyframe's overlap is the
+//! fraction of these points in front of it and projecting more than `overlap_margin` [20] px
+//! inside its image. Keyframes with overlap > 0 are candidates; `window_keyframes` of them are
+//! drawn uniformly at random without replacement (all when fewer).
+//!
+//! # Pixel sampling and loss reduction
+//!
+//! Every iteration draws `pixels` integer pixels, spread evenly over the window frames
+//! (`pixels / n` each, the first `pixels % n` frames one more), uniform in
+//! `[border, W - 1 - border]^2`. The colour term is averaged over the sampled pixels
+//! (`color_scale = 1 / pixels`), and so is the warping term (`warp_scale = 1 / pixels`; each
+//! pixel's warp term is DIM-SLAM's sum over its valid pairs; pixels with too few valid views
+//! count as zero).
+
+use crate::camera::{Intrinsics, Pose};
+use crate::mapping::{MappingLoss, PixelResult, PixelSample};
+use crate::model::{Ray, RayResult};
+use crate::rng::{hash_u32, SplitMix};
+use crate::step::{Backend, ImageStore, MapBatch};
+use crate::warp::{WarpConfig, MAX_WINDOW};
+use crate::Error;
+
+/// Largest local set plus frames pending for the next update.
+pub const MAX_LOCAL: usize = 32;
+/// Largest keyframe cache.
+pub const MAX_KEYFRAMES: usize = 1024;
+/// Most pixels rendered for the keyframe overlap test.
+pub const MAX_OVERLAP_PIXELS: usize = 256;
+
+/// What happens when a frame joins a full keyframe cache.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum KeyframeOverflow {
+    /// Drop every other keyframe (keep cache indices 0, 2, 4, ...).
+    Thin,
+    /// Drop the oldest keyframe.
+    DropOldest,
+}
+
+/// Every setting of the mapper. [`MapperConfig::paper`] gives the paper's values.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MapperConfig {
+    /// Most recent frames in the window (15).
+    pub local_frames: u32,
+    /// Keyframes drawn into the window (5).
+    pub window_keyframes: u32,
+    /// New frames between online updates (5).
+    pub update_every: u32,
+    /// Frames of the initialisation window (15).
+    pub init_frames: u32,
+    /// Initialisation iterations (1500).
+    pub init_iters: u32,
+    /// Initialisation iterations whose colour loss reaches the geometry (250).
+    pub init_color_iters: u32,
+    /// Iterations per online update (20).
+    pub iters: u32,
+    /// Pixels sampled per iteration (over the whole window).
+    pub pixels: u32,
+    /// Sampled pixels keep this distance (px) from the image border (>= warp half + 1).
+    pub border: u32,
+    /// Colour weight during initialisation (0.1).
+    pub lambda_color_init: f32,
+    /// Colour weight online (0.001).
+    pub lambda_color: f32,
+    /// Warping-loss weight (1.0).
+    pub lambda_warp: f32,
+    pub warp: WarpConfig,
+    /// Keyframe cache capacity (<= [`MAX_KEYFRAMES`]).
+    pub max_keyframes: u32,
+    pub keyframe_overflow: KeyframeOverflow,
+    /// Rendered pixels of the overlap test (100, <= [`MAX_OVERLAP_PIXELS`]).
+    pub overlap_pixels: u32,
+    /// Points per pixel of the overlap test (16).
+    pub overlap_points: u32,
+    /// Projections must fall this far (px) inside a keyframe (20).
+    pub overlap_margin: f32,
+    /// Seed of pixel sampling, keyframe choice and stratified jitter.
+    pub seed: u64,
+}
+
+impl MapperConfig {
+    /// The paper's schedule with `pixels` pixels per iteration.
+    pub const fn paper(pixels: u32) -> Self {
+        Self {
+            local_frames: 15,
+            window_keyframes: 5,
+            update_every: 5,
+            init_frames: 15,
+            init_iters: 1500,
+            init_color_iters: 250,
+            iters: 20,
+            pixels,
+            border: 10,
+            lambda_color_init: 0.1,
+            lambda_color: 0.001,
+            lambda_warp: 1.0,
+            warp: WarpConfig::dim_slam(),
+            max_keyframes: 512,
+            keyframe_overflow: KeyframeOverflow::Thin,
+            overlap_pixels: 100,
+            overlap_points: 16,
+            overlap_margin: 20.0,
+            seed: 0,
+        }
+    }
+
+    /// Image slots the backend needs: local set, pending frames and the keyframe cache.
+    pub const fn slots_needed(&self) -> u32 {
+        let local = if self.init_frames > self.local_frames {
+            self.init_frames
+        } else {
+            self.local_frames
+        };
+        local + self.update_every + self.max_keyframes
+    }
+
+    /// Checks every range against the module's capacities and the backend's image store.
+    pub fn validate(&self, store: &ImageStore) -> Result<(), Error> {
+        let cap = |what, needed: u64, capacity: usize| -> Result<(), Error> {
+            if needed > capacity as u64 {
+                Err(Error::Capacity {
+                    what,
+                    needed,
+                    capacity: capacity as u64,
+                })
+            } else {
+                Ok(())
+            }
+        };
+        if self.local_frames == 0 || self.update_every == 0 || self.init_frames == 0 {
+            return Err(Error::InvalidConfig(
+                "mapper: local_frames, update_every and init_frames must be >= 1",
+            ));
+        }
+        if self.pixels == 0 {
+            return Err(Error::InvalidConfig("mapper: pixels must be >= 1"));
+        }
+        let local = self.local_frames.max(self.init_frames);
+        cap(
+            "mapper local frames + update_every",
+            (local + self.update_every) as u64,
+            MAX_LOCAL,
+        )?;
+        cap(
+            "mapper window (local_frames + window_keyframes)",
+            (self.local_frames + self.window_keyframes) as u64,
+            MAX_WINDOW,
+        )?;
+        cap("mapper init_frames", self.init_frames as u64, MAX_WINDOW)?;
+        cap(
+            "mapper max_keyframes",
+            self.max_keyframes as u64,
+            MAX_KEYFRAMES,
+        )?;
+        cap(
+            "mapper overlap_pixels",
+            self.overlap_pixels as u64,
+            MAX_OVERLAP_PIXELS,
+        )?;
+        if self.max_keyframes < 2 && self.keyframe_overflow == KeyframeOverflow::Thin {
+            return Err(Error::InvalidConfig(
+                "mapper: thinning the keyframe cache needs max_keyframes >= 2",
+            ));
+        }
+        if self.overlap_points < 2 {
+            return Err(Error::InvalidConfig("mapper: overlap_points must be >= 2"));
+        }
+        if !(self.overlap_margin.is_finite() && self.overlap_margin >= 0.0) {
+            return Err(Error::InvalidConfig(
+                "mapper: overlap_margin must be finite and >= 0",
+            ));
+        }
+        let ok = |x: f32| x.is_finite() && x >= 0.0;
+        if !(ok(self.lambda_color_init) && ok(self.lambda_color) && ok(self.lambda_warp)) {
+            return Err(Error::InvalidConfig(
+                "mapper: loss weights must be finite and >= 0",
+            ));
+        }
+        self.warp.validate()?;
+        if self.border < self.warp.half + 1 {
+            return Err(Error::InvalidConfig(
+                "mapper: border must be at least warp half + 1",
+            ));
+        }
+        if store.width <= 2 * self.border || store.height <= 2 * self.border {
+            return Err(Error::InvalidConfig(
+                "mapper: image smaller than twice the sampling border",
+            ));
+        }
+        if store.slots < self.slots_needed() {
+            return Err(Error::Capacity {
+                what: "backend image slots",
+                needed: self.slots_needed() as u64,
+                capacity: store.slots as u64,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// Mapper errors: its own (capacities, configuration, bad input) or the backend's.
+#[derive(Debug)]
+pub enum MapperError<E> {
+    Core(Error),
+    Backend(E),
+}
+
+impl<E> From<Error> for MapperError<E> {
+    fn from(e: Error) -> Self {
+        MapperError::Core(e)
+    }
+}
+
+impl<E: core::fmt::Display> core::fmt::Display for MapperError<E> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            MapperError::Core(e) => write!(f, "mapper: {e}"),
+            MapperError::Backend(e) => write!(f, "backend: {e}"),
+        }
+    }
+}
+
+impl<E: core::fmt::Debug + core::fmt::Display> core::error::Error for MapperError<E> {}
+
+/// Which kind of optimisation an update was.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum UpdateKind {
+    Init,
+    Online,
+}
+
+/// Progress of one iteration (passed to the observer of [`Mapper::push_frame_observed`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IterInfo {
+    pub kind: UpdateKind,
+    /// Iteration within this update (0-based) and the update's total.
+    pub iter: u32,
+    pub iters: u32,
+    /// Total loss, and its colour and warp parts (each averaged over the pixels, weighted).
+    pub loss: f32,
+    pub color_loss: f32,
+    pub warp_loss: f32,
+    /// Fraction of sampled pixels with a valid warp term.
+    pub warp_valid: f32,
+}
+
+/// What one mapping update did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct UpdateReport {
+    pub kind: UpdateKind,
+    /// Id of the newest frame (the "current" frame of the update).
+    pub frame: u32,
+    pub iters: u32,
+    /// Loss of the first and the last iteration.
+    pub first: IterInfo,
+    pub last: IterInfo,
+    /// Frames in the window, of which keyframes.
+    pub window_frames: u32,
+    pub window_keyframes: u32,
+    /// Keyframes with overlap > 0 (candidates), and the cache size.
+    pub candidates: u32,
+    pub keyframes: u32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Entry {
+    id: u32,
+    slot: u32,
+    pose: Pose,
+}
+
+const EMPTY: Entry = Entry {
+    id: 0,
+    slot: 0,
+    pose: Pose::IDENTITY,
+};
+
+const MAX_SLOTS: usize = MAX_LOCAL + MAX_KEYFRAMES;
+
+/// The online mapper. See the module documentation for the schedule.
+pub struct Mapper<'a, B: Backend> {
+    backend: B,
+    cfg: MapperConfig,
+    k: Intrinsics,
+    store: ImageStore,
+    /// Local frames, oldest first.
+    local: [Entry; MAX_LOCAL],
+    local_len: usize,
+    /// Frames pushed since the last update.
+    pending: usize,
+    keyframes: [Entry; MAX_KEYFRAMES],
+    kf_len: usize,
+    free: [u32; MAX_SLOTS],
+    free_len: usize,
+    initialized: bool,
+    pushed: u32,
+    /// Iterations run so far (seeds the stratified jitter).
+    total_iters: u32,
+    rng: SplitMix,
+    pixels: &'a mut [PixelSample],
+    results: &'a mut [PixelResult],
+    win_ids: [u32; MAX_WINDOW],
+    win_poses: [Pose; MAX_WINDOW],
+    win_slots: [u32; MAX_WINDOW],
+    win_len: usize,
+    win_kf: usize,
+    overlap_rays: [Ray; MAX_OVERLAP_PIXELS],
+    overlap_out: [RayResult; MAX_OVERLAP_PIXELS],
+    candidates: [u16; MAX_KEYFRAMES],
+}
+
+impl<'a, B: Backend> Mapper<'a, B> {
+    /// A mapper over `backend` (whose image store must match `k` and hold
+    /// [`MapperConfig::slots_needed`] slots). `pixels` and `results` must each hold exactly
+    /// `cfg.pixels` entries.
+    pub fn new(
+        backend: B,
+        cfg: MapperConfig,
+        k: Intrinsics,
+        pixels: &'a mut [PixelSample],
+        results: &'a mut [PixelResult],
+    ) -> Result<Self, Error> {
+        let store = backend.image_store();
+        cfg.validate(&store)?;
+        if k.width != store.width || k.height != store.height {
+            return Err(Error::InvalidConfig(
+                "mapper: intrinsics size differs from the backend's image store",
+            ));
+        }
+        crate::error::check_len("mapper pixel buffer", pixels.len(), cfg.pixels as usize)?;
+        crate::error::check_len("mapper result buffer", results.len(), cfg.pixels as usize)?;
+        let n_slots = cfg.slots_needed() as usize;
+        let mut free = [0u32; MAX_SLOTS];
+        // Pop from the end: slot 0 is used first.
+        let mut i = 0;
+        while i < n_slots {
+            free[i] = (n_slots - 1 - i) as u32;
+            i += 1;
+        }
+        Ok(Self {
+            backend,
+            cfg,
+            k,
+            store,
+            local: [EMPTY; MAX_LOCAL],
+            local_len: 0,
+            pending: 0,
+            keyframes: [EMPTY; MAX_KEYFRAMES],
+            kf_len: 0,
+            free,
+            free_len: n_slots,
+            initialized: false,
+            pushed: 0,
+            total_iters: 0,
+            rng: SplitMix::new(cfg.seed),
+            pixels,
+            results,
+            win_ids: [0; MAX_WINDOW],
+            win_poses: [Pose::IDENTITY; MAX_WINDOW],
+            win_slots: [0; MAX_WINDOW],
+            win_len: 0,
+            win_kf: 0,
+            overlap_rays: [Ray {
+                origin: [0.0; 3],
+                dir: [0.0; 3],
+                target: [0.0; 3],
+                target_depth: 0.0,
+            }; MAX_OVERLAP_PIXELS],
+            overlap_out: [RayResult::default(); MAX_OVERLAP_PIXELS],
+            candidates: [0; MAX_KEYFRAMES],
+        })
+    }
+
+    pub fn backend(&self) -> &B {
+        &self.backend
+    }
+
+    pub fn backend_mut(&mut self) -> &mut B {
+        &mut self.backend
+    }
+
+    pub fn into_backend(self) -> B {
+        self.backend
+    }
+
+    pub fn config(&self) -> &MapperConfig {
+        &self.cfg
+    }
+
+    pub fn intrinsics(&self) -> Intrinsics {
+        self.k
+    }
+
+    /// Whether the initialisation has run.
+    pub fn is_initialized(&self) -> bool {
+        self.initialized
+    }
+
+    /// Frames pushed so far.
+    pub fn frames_pushed(&self) -> u32 {
+        self.pushed
+    }
+
+    /// Mapping iterations run so far.
+    pub fn iterations(&self) -> u32 {
+        self.total_iters
+    }
+
+    /// Ids of the local frames, oldest first (including frames pending for the next update).
+    pub fn local_ids(&self) -> impl Iterator<Item = u32> + '_ {
+        self.local[..self.local_len].iter().map(|e| e.id)
+    }
+
+    /// Ids of the keyframe cache, oldest first.
+    pub fn keyframe_ids(&self) -> impl Iterator<Item = u32> + '_ {
+        self.keyframes[..self.kf_len].iter().map(|e| e.id)
+    }
+
+    /// Ids of the frames of the last update's window (keyframes first).
+    pub fn window_ids(&self) -> &[u32] {
+        &self.win_ids[..self.win_len]
+    }
+
+    /// Pushes a posed frame (packed RGBA8, see [`crate::mapping::pack_rgba8`]; camera-to-world
+    /// pose) and runs an update when the schedule says so.
+    pub fn push_frame(
+        &mut self,
+        rgba: &[u32],
+        pose: Pose,
+    ) -> Result<Option<UpdateReport>, MapperError<B::Error>> {
+        self.push_frame_observed(rgba, pose, &mut |_| {})
+    }
+
+    /// [`Self::push_frame`] with an observer called after every iteration.
+    pub fn push_frame_observed<F: FnMut(&IterInfo)>(
+        &mut self,
+        rgba: &[u32],
+        pose: Pose,
+        observe: &mut F,
+    ) -> Result<Option<UpdateReport>, MapperError<B::Error>> {
+        crate::error::check_len("frame pixels", rgba.len(), self.store.slot_len())?;
+        if !pose.is_rigid(1e-3) {
+            return Err(
+                Error::InvalidConfig("mapper: pose is not a finite rigid transform").into(),
+            );
+        }
+        if self.local_len >= MAX_LOCAL || self.free_len == 0 {
+            return Err(Error::Capacity {
+                what: "mapper frame slots",
+                needed: self.local_len as u64 + 1,
+                capacity: MAX_LOCAL as u64,
+            }
+            .into());
+        }
+        self.free_len -= 1;
+        let slot = self.free[self.free_len];
+        if let Err(e) = self.backend.upload_frame(slot, rgba) {
+            self.free_len += 1;
+            return Err(MapperError::Backend(e));
+        }
+        self.local[self.local_len] = Entry {
+            id: self.pushed,
+            slot,
+            pose,
+        };
+        self.local_len += 1;
+        self.pushed += 1;
+        self.pending += 1;
+        if !self.initialized {
+            if self.local_len >= self.cfg.init_frames as usize {
+                return self.initialise(observe).map(Some);
+            }
+            return Ok(None);
+        }
+        if self.pending >= self.cfg.update_every as usize {
+            return self.online_update(observe).map(Some);
+        }
+        Ok(None)
+    }
+
+    /// Runs the pending update, if any (end of a sequence): the initialisation when it has not
+    /// run yet, else an online update when frames arrived since the last one.
+    pub fn flush<F: FnMut(&IterInfo)>(
+        &mut self,
+        observe: &mut F,
+    ) -> Result<Option<UpdateReport>, MapperError<B::Error>> {
+        if self.local_len == 0 {
+            return Ok(None);
+        }
+        if !self.initialized {
+            return self.initialise(observe).map(Some);
+        }
+        if self.pending > 0 {
+            return self.online_update(observe).map(Some);
+        }
+        Ok(None)
+    }
+
+    fn initialise<F: FnMut(&IterInfo)>(
+        &mut self,
+        observe: &mut F,
+    ) -> Result<UpdateReport, MapperError<B::Error>> {
+        self.win_len = 0;
+        self.win_kf = 0;
+        let mut i = 0;
+        while i < self.local_len {
+            self.add_to_window(self.local[i]);
+            i += 1;
+        }
+        let (first, last) = self.run_iters(UpdateKind::Init, self.cfg.init_iters, observe)?;
+        self.initialized = true;
+        self.pending = 0;
+        // A longer initialisation window than the local set: trim it now.
+        self.evict_to(self.cfg.local_frames as usize)?;
+        Ok(self.report(UpdateKind::Init, self.cfg.init_iters, first, last, 0))
+    }
+
+    fn online_update<F: FnMut(&IterInfo)>(
+        &mut self,
+        observe: &mut F,
+    ) -> Result<UpdateReport, MapperError<B::Error>> {
+        self.evict_to(self.cfg.local_frames as usize)?;
+        let candidates = self.select_keyframes()?;
+        // window: the chosen keyframes (already in win_*), then the local frames
+        let mut i = 0;
+        while i < self.local_len {
+            self.add_to_window(self.local[i]);
+            i += 1;
+        }
+        let (first, last) = self.run_iters(UpdateKind::Online, self.cfg.iters, observe)?;
+        self.pending = 0;
+        Ok(self.report(UpdateKind::Online, self.cfg.iters, first, last, candidates))
+    }
+
+    fn report(
+        &self,
+        kind: UpdateKind,
+        iters: u32,
+        first: IterInfo,
+        last: IterInfo,
+        candidates: u32,
+    ) -> UpdateReport {
+        UpdateReport {
+            kind,
+            frame: self.pushed.saturating_sub(1),
+            iters,
+            first,
+            last,
+            window_frames: self.win_len as u32,
+            window_keyframes: self.win_kf as u32,
+            candidates,
+            keyframes: self.kf_len as u32,
+        }
+    }
+
+    fn add_to_window(&mut self, e: Entry) {
+        if self.win_len < MAX_WINDOW {
+            self.win_ids[self.win_len] = e.id;
+            self.win_poses[self.win_len] = e.pose;
+            self.win_slots[self.win_len] = e.slot;
+            self.win_len += 1;
+        }
+    }
+
+    fn free_slot(&mut self, slot: u32) {
+        if self.free_len < MAX_SLOTS {
+            self.free[self.free_len] = slot;
+            self.free_len += 1;
+        }
+    }
+
+    /// Cuts the local set to its `keep` most recent frames: the oldest leaving frame joins the
+    /// keyframe cache, the other leaving frames are dropped.
+    fn evict_to(&mut self, keep: usize) -> Result<(), Error> {
+        if self.local_len <= keep {
+            return Ok(());
+        }
+        let leave = self.local_len - keep;
+        let oldest = self.local[0];
+        let mut i = 1;
+        while i < leave {
+            let slot = self.local[i].slot;
+            self.free_slot(slot);
+            i += 1;
+        }
+        let mut j = 0;
+        while j < keep {
+            self.local[j] = self.local[j + leave];
+            j += 1;
+        }
+        self.local_len = keep;
+        self.add_keyframe(oldest);
+        Ok(())
+    }
+
+    fn add_keyframe(&mut self, e: Entry) {
+        let cap = self.cfg.max_keyframes as usize;
+        if cap == 0 {
+            self.free_slot(e.slot);
+            return;
+        }
+        if self.kf_len >= cap {
+            match self.cfg.keyframe_overflow {
+                KeyframeOverflow::Thin => {
+                    let mut w = 0;
+                    let mut r = 0;
+                    while r < self.kf_len {
+                        if r % 2 == 0 {
+                            self.keyframes[w] = self.keyframes[r];
+                            w += 1;
+                        } else {
+                            let slot = self.keyframes[r].slot;
+                            self.free_slot(slot);
+                        }
+                        r += 1;
+                    }
+                    self.kf_len = w;
+                }
+                KeyframeOverflow::DropOldest => {
+                    let slot = self.keyframes[0].slot;
+                    self.free_slot(slot);
+                    let mut i = 1;
+                    while i < self.kf_len {
+                        self.keyframes[i - 1] = self.keyframes[i];
+                        i += 1;
+                    }
+                    self.kf_len -= 1;
+                }
+            }
+        }
+        self.keyframes[self.kf_len] = e;
+        self.kf_len += 1;
+    }
+
+    /// Chooses the window's keyframes (into `win_*`, resetting the window) and returns the
+    /// number of candidates.
+    fn select_keyframes(&mut self) -> Result<u32, MapperError<B::Error>> {
+        self.win_len = 0;
+        self.win_kf = 0;
+        let want = self.cfg.window_keyframes as usize;
+        if want == 0 || self.kf_len == 0 || self.local_len == 0 {
+            return Ok(0);
+        }
+        let cur = self.local[self.local_len - 1].pose;
+        let k = self.k;
+        let n = self.cfg.overlap_pixels as usize;
+        let mut i = 0;
+        while i < n {
+            let u = self.rng.below(k.width) as f32;
+            let v = self.rng.below(k.height) as f32;
+            let (origin, dir) = cur.ray(&k, u, v);
+            self.overlap_rays[i] = Ray {
+                origin,
+                dir,
+                target: [0.0; 3],
+                target_depth: 0.0,
+            };
+            i += 1;
+        }
+        self.backend
+            .render(&self.overlap_rays[..n], &mut self.overlap_out[..n])
+            .map_err(MapperError::Backend)?;
+        let np = self.cfg.overlap_points as usize;
+        let margin = self.cfg.overlap_margin;
+        let (w, h) = (k.width as f32, k.height as f32);
+        let mut n_cand = 0usize;
+        let mut f = 0;
+        while f < self.kf_len {
+            let kf = self.keyframes[f].pose;
+            let mut inside = 0u32;
+            let mut r = 0;
+            while r < n {
+                let out = self.overlap_out[r];
+                if out.opacity > 0.0 && out.depth > 0.0 {
+                    let d = out.depth;
+                    let ray = &self.overlap_rays[r];
+                    let (t0, t1) = (0.8 * d, d + 0.5);
+                    let mut s = 0;
+                    while s < np {
+                        let t = t0 + (t1 - t0) * s as f32 / (np - 1) as f32;
+                        let p = [
+                            ray.origin[0] + t * ray.dir[0],
+                            ray.origin[1] + t * ray.dir[1],
+                            ray.origin[2] + t * ray.dir[2],
+                        ];
+                        let (pu, pv, z) = k.project(kf.inverse_transform(p));
+                        if z > 0.0
+                            && pu > margin
+                            && pu < w - 1.0 - margin
+                            && pv > margin
+                            && pv < h - 1.0 - margin
+                        {
+                            inside += 1;
+                        }
+                        s += 1;
+                    }
+                }
+                r += 1;
+            }
+            if inside > 0 {
+                self.candidates[n_cand] = f as u16;
+                n_cand += 1;
+            }
+            f += 1;
+        }
+        // Partial Fisher-Yates: the first `take` candidates are a uniform random subset.
+        let take = want.min(n_cand);
+        let mut i = 0;
+        while i < take {
+            let j = i + self.rng.below((n_cand - i) as u32) as usize;
+            self.candidates.swap(i, j);
+            i += 1;
+        }
+        // Keep the chosen keyframes in cache order (oldest first).
+        self.candidates[..take].sort_unstable();
+        let mut i = 0;
+        while i < take {
+            let e = self.keyframes[self.candidates[i] as usize];
+            self.add_to_window(e);
+            i += 1;
+        }
+        self.win_kf = take;
+        Ok(n_cand as u32)
+    }
+
+    fn sample_pixels(&mut self) {
+        let n = self.win_len.max(1) as u32;
+        let total = self.cfg.pixels;
+        let (w, h) = (self.k.width, self.k.height);
+        let b = self.cfg.border;
+        let per = total / n;
+        let extra = total % n;
+        let mut idx = 0usize;
+        let mut f = 0;
+        while f < n {
+            let cnt = per + if f < extra { 1 } else { 0 };
+            let mut c = 0;
+            while c < cnt {
+                let u = b + self.rng.below(w - 2 * b);
+                let v = b + self.rng.below(h - 2 * b);
+                self.pixels[idx] = PixelSample { frame: f, u, v };
+                idx += 1;
+                c += 1;
+            }
+            f += 1;
+        }
+    }
+
+    fn run_iters<F: FnMut(&IterInfo)>(
+        &mut self,
+        kind: UpdateKind,
+        iters: u32,
+        observe: &mut F,
+    ) -> Result<(IterInfo, IterInfo), MapperError<B::Error>> {
+        let inv = 1.0 / self.cfg.pixels as f32;
+        let mut first = IterInfo {
+            kind,
+            iter: 0,
+            iters,
+            loss: 0.0,
+            color_loss: 0.0,
+            warp_loss: 0.0,
+            warp_valid: 0.0,
+        };
+        let mut last = first;
+        let mut it = 0;
+        while it < iters {
+            self.sample_pixels();
+            let init = kind == UpdateKind::Init;
+            let loss = MappingLoss {
+                lambda_color: if init {
+                    self.cfg.lambda_color_init
+                } else {
+                    self.cfg.lambda_color
+                },
+                lambda_warp: self.cfg.lambda_warp,
+                color_scale: inv,
+                warp_scale: inv,
+                color_to_geometry: init && it < self.cfg.init_color_iters,
+                seed: hash_u32(self.total_iters ^ (self.cfg.seed as u32)),
+                warp: self.cfg.warp,
+            };
+            let batch = MapBatch {
+                k: self.k,
+                poses: &self.win_poses[..self.win_len],
+                slots: &self.win_slots[..self.win_len],
+                pixels: self.pixels,
+                loss,
+            };
+            let stats = self
+                .backend
+                .map_step(&batch, self.results)
+                .map_err(MapperError::Backend)?;
+            self.total_iters = self.total_iters.wrapping_add(1);
+            let mut c = 0.0f32;
+            let mut wl = 0.0f32;
+            let mut valid = 0u32;
+            for r in self.results.iter() {
+                c += r.color_loss;
+                wl += r.warp_loss;
+                valid += (r.warp_views >= self.cfg.warp.min_views) as u32;
+            }
+            let info = IterInfo {
+                kind,
+                iter: it,
+                iters,
+                loss: stats.loss,
+                color_loss: c,
+                warp_loss: wl,
+                warp_valid: valid as f32 * inv,
+            };
+            if it == 0 {
+                first = info;
+            }
+            last = info;
+            observe(&info);
+            it += 1;
+        }
+        Ok((first, last))
+    }
+}
+
+/// Fills `out` with the rays of every pixel of a view (row-major, pixel centres), for
+/// [`Backend::render`]. `out` must hold `k.width * k.height` rays.
+pub fn view_rays(k: &Intrinsics, pose: &Pose, out: &mut [Ray]) -> Result<(), Error> {
+    crate::error::check_len("view rays", out.len(), k.width as usize * k.height as usize)?;
+    let mut i = 0;
+    let mut v = 0;
+    while v < k.height {
+        let mut u = 0;
+        while u < k.width {
+            let (origin, dir) = pose.ray(k, u as f32, v as f32);
+            out[i] = Ray {
+                origin,
+                dir,
+                target: [0.0; 3],
+                target_depth: 0.0,
+            };
+            i += 1;
+            u += 1;
+        }
+        v += 1;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::{Group, LossConfig, ModelConfig, ModelLayout};
+    use crate::step::StepStats;
+    use crate::Aabb;
+    use std::vec;
+    use std::vec::Vec;
+
+    /// What the mock saw of one `map_step`.
+    #[derive(Clone, Debug)]
+    struct Call {
+        slots: Vec<u32>,
+        pixels: Vec<PixelSample>,
+        lambda_color: f32,
+        color_to_geometry: bool,
+    }
+
+    /// A backend that renders every ray at depth 2 m with full opacity and records the
+    /// mapping steps.
+    struct Mock {
+        layout: ModelLayout,
+        store: ImageStore,
+        uploads: Vec<u32>,
+        calls: Vec<Call>,
+    }
+
+    impl Mock {
+        fn new(slots: u32) -> Self {
+            let layout =
+                ModelLayout::new(&ModelConfig::paper(Aabb::new([-4.0; 3], [4.0; 3]))).unwrap();
+            Self {
+                layout,
+                store: ImageStore {
+                    width: 64,
+                    height: 48,
+                    slots,
+                },
+                uploads: Vec::new(),
+                calls: Vec::new(),
+            }
+        }
+    }
+
+    impl Backend for Mock {
+        type Error = Error;
+        fn layout(&self) -> &ModelLayout {
+            &self.layout
+        }
+        fn name(&self) -> &str {
+            "mock"
+        }
+        fn train_step(
+            &mut self,
+            _: &[Ray],
+            _: &LossConfig,
+            _: &mut [RayResult],
+        ) -> Result<StepStats, Error> {
+            Ok(StepStats::default())
+        }
+        fn render(&mut self, rays: &[Ray], out: &mut [RayResult]) -> Result<(), Error> {
+            for o in out.iter_mut().take(rays.len()) {
+                *o = RayResult {
+                    color: [0.5; 3],
+                    depth: 2.0,
+                    opacity: 1.0,
+                    loss: 0.0,
+                };
+            }
+            Ok(())
+        }
+        fn read_params(&mut self, _: Group, _: &mut [f32]) -> Result<(), Error> {
+            Ok(())
+        }
+        fn read_grads(&mut self, _: Group, _: &mut [i64]) -> Result<(), Error> {
+            Ok(())
+        }
+        fn write_params(&mut self, _: Group, _: &[f32], _: bool) -> Result<(), Error> {
+            Ok(())
+        }
+        fn image_store(&self) -> ImageStore {
+            self.store
+        }
+        fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), Error> {
+            assert_eq!(rgba.len(), self.store.slot_len());
+            assert!(slot < self.store.slots);
+            self.uploads.push(slot);
+            Ok(())
+        }
+        fn map_step(
+            &mut self,
+            batch: &MapBatch<'_>,
+            results: &mut [PixelResult],
+        ) -> Result<StepStats, Error> {
+            crate::step::window_slots(batch, &self.store)?;
+            self.calls.push(Call {
+                slots: batch.slots.to_vec(),
+                pixels: batch.pixels.to_vec(),
+                lambda_color: batch.loss.lambda_color,
+                color_to_geometry: batch.loss.color_to_geometry,
+            });
+            for r in results.iter_mut() {
+                *r = PixelResult {
+                    color_loss: 0.25,
+                    ..PixelResult::default()
+                };
+            }
+            Ok(StepStats {
+                loss: 0.25 * results.len() as f32,
+                rays_hit: 0,
+                t: self.calls.len() as u32,
+            })
+        }
+        fn set_adam_lr(&mut self, _: Group, _: f32) -> Result<(), Error> {
+            Ok(())
+        }
+    }
+
+    fn cfg() -> MapperConfig {
+        let mut c = MapperConfig::paper(60);
+        c.init_iters = 7;
+        c.init_color_iters = 3;
+        c.iters = 4;
+        c
+    }
+
+    /// Camera at x = 0.01 i looking along +z (every keyframe overlaps the current view).
+    fn pose(i: u32) -> Pose {
+        let mut p = Pose::IDENTITY;
+        p.m[0][3] = 0.01 * i as f32;
+        p
+    }
+
+    fn image() -> Vec<u32> {
+        vec![0xff80_8080; 64 * 48]
+    }
+
+    fn push_n<'a>(m: &mut Mapper<'a, Mock>, n: u32) -> Vec<UpdateReport> {
+        let img = image();
+        let mut out = Vec::new();
+        for _ in 0..n {
+            let id = m.frames_pushed();
+            if let Some(r) = m.push_frame(&img, pose(id)).unwrap() {
+                out.push(r);
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn initialisation_triggers_on_the_15th_frame_with_the_colour_schedule() {
+        let c = cfg();
+        let (mut px, mut res) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        assert!(push_n(&mut m, 14).is_empty());
+        assert!(!m.is_initialized());
+        let r = push_n(&mut m, 1);
+        assert_eq!(r.len(), 1);
+        assert_eq!(r[0].kind, UpdateKind::Init);
+        assert_eq!(r[0].frame, 14);
+        assert_eq!(r[0].window_frames, 15);
+        assert_eq!(m.window_ids(), (0..15).collect::<Vec<_>>().as_slice());
+        let calls = &m.backend().calls;
+        assert_eq!(calls.len(), 7);
+        // colour reaches the geometry in the first 3 iterations only, lambda_c = 0.1
+        let ctg: Vec<bool> = calls.iter().map(|c| c.color_to_geometry).collect();
+        assert_eq!(ctg, [true, true, true, false, false, false, false]);
+        assert!(calls
+            .iter()
+            .all(|c| c.lambda_color == 0.1 && c.slots.len() == 15));
+        // 0.25 per pixel, 60 pixels: the mock's loss
+        assert_eq!(r[0].last.loss, 15.0);
+        assert_eq!(m.iterations(), 7);
+    }
+
+    fn intr() -> Intrinsics {
+        Intrinsics {
+            width: 64,
+            height: 48,
+            fx: 50.0,
+            fy: 50.0,
+            cx: 31.5,
+            cy: 23.5,
+        }
+    }
+
+    #[test]
+    fn online_windows_local_set_and_keyframe_cache_follow_the_schedule() {
+        let c = cfg();
+        let (mut px, mut res) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 15);
+        assert!(push_n(&mut m, 4).is_empty());
+        let r = push_n(&mut m, 1);
+        assert_eq!(r.len(), 1);
+        let r = r[0];
+        assert_eq!((r.kind, r.frame), (UpdateKind::Online, 19));
+        // frames 0..5 left the local set; frame 0 became a keyframe, 1..4 were dropped
+        assert_eq!(
+            m.local_ids().collect::<Vec<_>>(),
+            (5..20).collect::<Vec<_>>()
+        );
+        assert_eq!(m.keyframe_ids().collect::<Vec<_>>(), [0]);
+        let mut want = vec![0];
+        want.extend(5..20);
+        assert_eq!(m.window_ids(), want.as_slice());
+        assert_eq!(
+            (r.window_frames, r.window_keyframes, r.keyframes),
+            (16, 1, 1)
+        );
+        let calls = &m.backend().calls;
+        assert_eq!(calls.len(), 7 + 4);
+        assert!(calls[7..]
+            .iter()
+            .all(|c| c.lambda_color == 0.001 && !c.color_to_geometry && c.slots.len() == 16));
+        // 10 more updates: keyframes 0, 5, ..., 50; window = 5 of them + 15 local frames
+        let reps = push_n(&mut m, 50);
+        assert_eq!(reps.len(), 10);
+        assert!(reps.iter().all(|r| r.kind == UpdateKind::Online));
+        assert_eq!(
+            m.keyframe_ids().collect::<Vec<_>>(),
+            (0..11).map(|i| 5 * i).collect::<Vec<_>>()
+        );
+        assert_eq!(
+            m.local_ids().collect::<Vec<_>>(),
+            (55..70).collect::<Vec<_>>()
+        );
+        let w = m.window_ids();
+        assert_eq!(w.len(), 20);
+        assert!(
+            w[..5].windows(2).all(|p| p[0] < p[1]) && w[..5].iter().all(|i| i % 5 == 0 && *i < 55)
+        );
+        assert_eq!(&w[5..], (55..70).collect::<Vec<_>>().as_slice());
+        // every live frame has its own slot, and slots are recycled (never more than needed)
+        let last = m.backend().calls.last().unwrap().slots.clone();
+        let mut s = last.clone();
+        s.sort();
+        s.dedup();
+        assert_eq!(s.len(), last.len());
+        assert!(m.backend().uploads.iter().all(|&s| s < c.slots_needed()));
+    }
+
+    #[test]
+    fn full_keyframe_cache_is_thinned_or_drops_the_oldest() {
+        for (policy, want) in [
+            (KeyframeOverflow::Thin, vec![0, 10, 20]),
+            (KeyframeOverflow::DropOldest, vec![5, 10, 15, 20]),
+        ] {
+            let mut c = cfg();
+            c.max_keyframes = 4;
+            c.keyframe_overflow = policy;
+            let (mut px, mut res) = (
+                vec![PixelSample::default(); 60],
+                vec![PixelResult::default(); 60],
+            );
+            let mut m =
+                Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+            // init + 5 updates: keyframes 0, 5, 10, 15, 20 offered to a cache of 4
+            push_n(&mut m, 15 + 25);
+            assert_eq!(m.keyframe_ids().collect::<Vec<_>>(), want, "{policy:?}");
+        }
+    }
+
+    #[test]
+    fn keyframes_outside_the_view_are_not_candidates() {
+        let c = cfg();
+        let (mut px, mut res) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        let img = image();
+        // frame 0 looks along -z (rotation by pi about y): the current view's points at
+        // z in [1.6, 2.5] are behind it
+        let mut back = Pose::IDENTITY;
+        back.m[0][0] = -1.0;
+        back.m[2][2] = -1.0;
+        m.push_frame(&img, back).unwrap();
+        for i in 1..20 {
+            m.push_frame(&img, pose(i)).unwrap();
+        }
+        assert_eq!(m.keyframe_ids().collect::<Vec<_>>(), [0]);
+        assert_eq!(m.window_ids(), (5..20).collect::<Vec<_>>().as_slice());
+        // a second update adds frame 5, which does overlap
+        let r = push_n(&mut m, 5).pop().unwrap();
+        assert_eq!((r.candidates, r.keyframes, r.window_keyframes), (1, 2, 1));
+        assert_eq!(m.window_ids()[0], 5);
+    }
+
+    #[test]
+    fn pixels_are_spread_evenly_and_keep_the_border() {
+        let c = cfg();
+        let (mut px, mut res) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 20);
+        for call in &m.backend().calls {
+            let n = call.slots.len() as u32;
+            let mut count = vec![0u32; n as usize];
+            for p in &call.pixels {
+                assert!(p.u >= 10 && p.u < 54 && p.v >= 10 && p.v < 38, "{p:?}");
+                count[p.frame as usize] += 1;
+            }
+            // 60 pixels over 15 frames: 4 each; over 16 frames: 4 for the first 12, 3 after
+            for (f, &k) in count.iter().enumerate() {
+                assert_eq!(k, 60 / n + (f < (60 % n) as usize) as u32);
+            }
+        }
+        // different iterations draw different pixels
+        let calls = &m.backend().calls;
+        assert_ne!(calls[0].pixels, calls[1].pixels);
+    }
+
+    #[test]
+    fn flush_initialises_short_sequences_and_runs_pending_updates() {
+        let c = cfg();
+        let (mut px, mut res) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        assert!(m.flush(&mut |_| {}).unwrap().is_none());
+        push_n(&mut m, 6);
+        let r = m.flush(&mut |_| {}).unwrap().unwrap();
+        assert_eq!((r.kind, r.window_frames), (UpdateKind::Init, 6));
+        assert!(m.flush(&mut |_| {}).unwrap().is_none());
+        push_n(&mut m, 2);
+        let r = m.flush(&mut |_| {}).unwrap().unwrap();
+        assert_eq!((r.kind, r.window_frames), (UpdateKind::Online, 8));
+    }
+
+    #[test]
+    fn bad_configurations_and_inputs_are_errors() {
+        let c = cfg();
+        let (mut px, mut res) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        // too few slots
+        let e = Mapper::new(
+            Mock::new(c.slots_needed() - 1),
+            c,
+            intr(),
+            &mut px,
+            &mut res,
+        );
+        assert!(matches!(e, Err(Error::Capacity { .. })));
+        let mut bad = c;
+        bad.border = 5;
+        let e = Mapper::new(Mock::new(c.slots_needed()), bad, intr(), &mut px, &mut res);
+        assert!(matches!(e, Err(Error::InvalidConfig(_))));
+        let mut bad = c;
+        bad.local_frames = 30;
+        let e = Mapper::new(Mock::new(600), bad, intr(), &mut px, &mut res);
+        assert!(matches!(e, Err(Error::Capacity { .. })));
+        let mut short = vec![PixelSample::default(); 59];
+        let e = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut short, &mut res);
+        assert!(matches!(e, Err(Error::Shape { .. })));
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        assert!(matches!(
+            m.push_frame(&[0u32; 10], pose(0)),
+            Err(MapperError::Core(Error::Shape { .. }))
+        ));
+        let mut skew = pose(0);
+        skew.m[0][0] = 2.0;
+        assert!(matches!(
+            m.push_frame(&image(), skew),
+            Err(MapperError::Core(Error::InvalidConfig(_)))
+        ));
+        assert_eq!(m.frames_pushed(), 0);
+    }
+
+    #[test]
+    fn view_rays_cover_the_image_row_major() {
+        let k = intr();
+        let mut rays = vec![
+            Ray {
+                origin: [0.0; 3],
+                dir: [0.0; 3],
+                target: [0.0; 3],
+                target_depth: 0.0
+            };
+            64 * 48
+        ];
+        view_rays(&k, &pose(100), &mut rays).unwrap();
+        // pixel (u, v) = (3, 2): direction ((3 - 31.5)/50, (2 - 23.5)/50, 1), origin x = 1
+        let r = rays[2 * 64 + 3];
+        assert_eq!(r.origin, [1.0, 0.0, 0.0]);
+        assert_eq!(r.dir, [-0.57, -0.43, 1.0]);
+        assert!(view_rays(&k, &pose(0), &mut rays[1..]).is_err());
+    }
+}

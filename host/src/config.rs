@@ -1,0 +1,606 @@
+//! The one configuration of a mapping run (TOML), with the `paper` and `small` presets.
+//!
+//! Every field has a default (the `small` preset), so a TOML file only lists what it changes;
+//! unknown keys are errors. `himap map --preset paper --print-config` style inspection is done
+//! with [`Config::to_toml`].
+//!
+//! # Scene bounds
+//!
+//! The field lives in an axis-aligned box, chosen in this order:
+//! 1. `scene.min` / `scene.max` from the configuration (both must be given);
+//! 2. the `scene_box` of the dataset's `scene.json` (a synthetic sequence) grown by
+//!    `scene.synthetic_margin` (0.1 m) on every side;
+//! 3. derived from the camera path: the box around every camera centre and the points at
+//!    `scene.path_depth` (m) along the rays through the four image corners and the centre of
+//!    every frame, grown by `scene.path_margin` on every side. Monocular mapping has no depth
+//!    to bound the scene, so `path_depth` is a guess of the room size: set the box explicitly
+//!    when it is known.
+
+use std::path::Path;
+
+use anyhow::{bail, Context};
+use himap_core::adam::AdamConfig;
+use himap_core::camera::{Intrinsics, Pose};
+use himap_core::grid::{GridConfig, GridKind, MAX_LEVELS};
+use himap_core::mapper::{KeyframeOverflow, MapperConfig};
+use himap_core::model::{ModelConfig, NUM_GROUPS};
+use himap_core::render::RenderMode;
+use himap_core::warp::WarpConfig;
+use himap_core::Aabb;
+use serde::{Deserialize, Serialize};
+
+/// A grid's levels (coarsest first) and channels per level.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GridSection {
+    /// Channels per level.
+    pub channels: u32,
+    /// Cell size of each level in metres, coarsest first (1 to 8 levels).
+    pub cell_sizes: Vec<f32>,
+}
+
+/// The field.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelSection {
+    /// "factorized" (Hi-Map, TensoRF VM) or "dense" (the "no factorization" ablation).
+    pub grid_kind: String,
+    pub geometry: GridSection,
+    pub appearance: GridSection,
+    /// Hidden units per decoder layer (paper: 32).
+    pub hidden: u32,
+    /// Hidden layers per decoder (paper's "2 layers").
+    pub hidden_layers: u32,
+    /// Appearance decoder also sees the position (Hi-Map's dual path); false = ablation.
+    pub dual_path: bool,
+    /// "sdf-density" (Hi-Map), "sdf-direct" or "occupancy" (ablations).
+    pub render_mode: String,
+    /// Samples per ray (not in the paper).
+    pub samples: u32,
+    /// Initial beta of the SDF-to-density proxy (paper: 10).
+    pub beta_init: f32,
+    /// Std of the N(0, std^2) grid initialisation.
+    pub grid_init_std: f32,
+    /// Initial SDF output bias in metres (> 0 starts the field as free space).
+    pub sdf_bias_init: f32,
+}
+
+/// DIM-SLAM's warping loss settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct WarpSection {
+    /// Patch half size (5 = 11x11).
+    pub half: u32,
+    /// The centre must project this far (px) inside the other frame.
+    pub margin: f32,
+    /// Minimum number of frames that see the centre.
+    pub min_views: u32,
+    pub w_patch11: f32,
+    pub w_patch7: f32,
+    pub w_patch: f32,
+    pub w_center: f32,
+    pub center_beta: f32,
+}
+
+/// The mapping schedule (see `himap_core::mapper`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MapperSection {
+    /// Most recent frames in the window (15).
+    pub local_frames: u32,
+    /// Keyframes drawn into the window by view overlap (5).
+    pub window_keyframes: u32,
+    /// New frames between online updates (5).
+    pub update_every: u32,
+    /// Frames of the initialisation (15).
+    pub init_frames: u32,
+    /// Initialisation iterations (paper 1500).
+    pub init_iters: u32,
+    /// Initialisation iterations whose colour loss reaches the geometry (paper 250).
+    pub init_color_iters: u32,
+    /// Iterations per online update (paper 20).
+    pub iters: u32,
+    /// Pixels sampled per iteration over the whole window.
+    pub pixels: u32,
+    /// Sampled pixels stay this far (px) from the border (>= warp half + 1).
+    pub border: u32,
+    /// Colour weight during initialisation (0.1) and online (0.001); warp weight (1.0).
+    pub lambda_color_init: f32,
+    pub lambda_color: f32,
+    pub lambda_warp: f32,
+    pub warp: WarpSection,
+    /// Keyframe cache capacity.
+    pub max_keyframes: u32,
+    /// When the cache is full: "thin" (drop every other keyframe) or "drop-oldest".
+    pub keyframe_overflow: String,
+    /// Overlap test: rendered pixels, points per pixel, inside margin (px).
+    pub overlap_pixels: u32,
+    pub overlap_points: u32,
+    pub overlap_margin: f32,
+}
+
+/// Adam learning rates (betas 0.9, 0.999, eps 1e-8).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AdamSection {
+    /// Both grids (paper 0.01).
+    pub grid_lr: f32,
+    /// Both decoders (paper 1e-5).
+    pub mlp_lr: f32,
+    /// Beta of the density proxy.
+    pub beta_lr: f32,
+}
+
+/// Scene box (see the module documentation).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SceneSection {
+    pub min: Option<[f32; 3]>,
+    pub max: Option<[f32; 3]>,
+    /// Margin around a synthetic `scene.json` box (m).
+    pub synthetic_margin: f32,
+    /// Camera-path bounds: depth along the corner rays (m) and margin (m).
+    pub path_depth: f32,
+    pub path_margin: f32,
+}
+
+/// Evaluation and outputs of `himap map`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EvalSection {
+    /// Evaluate every k-th mapping update (1 = all, 0 = never).
+    pub every: u32,
+    /// Render the evaluation view at this fraction of the input resolution (0 < scale <= 1).
+    pub scale: f32,
+    /// Frames whose renders are written to `renders/` (spread over the sequence).
+    pub renders: u32,
+    /// Marching-cubes spacing (m) of `mesh.ply`.
+    pub mesh_resolution: f32,
+    /// Surface samples per mesh of Accuracy / Completion.
+    pub mesh_samples: usize,
+    /// Culling of the reconstruction for the mesh metrics: "none", "frustum", "occlusion";
+    /// "auto" = none with a ground-truth mesh, frustum with a depth ground truth.
+    pub cull: String,
+}
+
+/// Everything of a mapping run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    /// Seed of the initialisation, pixel sampling and keyframe choice.
+    pub seed: u64,
+    pub model: ModelSection,
+    pub mapper: MapperSection,
+    pub adam: AdamSection,
+    pub scene: SceneSection,
+    pub eval: EvalSection,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self::small()
+    }
+}
+impl Default for ModelSection {
+    fn default() -> Self {
+        Config::small().model
+    }
+}
+impl Default for MapperSection {
+    fn default() -> Self {
+        Config::small().mapper
+    }
+}
+impl Default for AdamSection {
+    fn default() -> Self {
+        Config::small().adam
+    }
+}
+impl Default for SceneSection {
+    fn default() -> Self {
+        Config::small().scene
+    }
+}
+impl Default for EvalSection {
+    fn default() -> Self {
+        Config::small().eval
+    }
+}
+impl Default for WarpSection {
+    fn default() -> Self {
+        WarpSection::from_core(&WarpConfig::dim_slam())
+    }
+}
+
+impl WarpSection {
+    pub fn from_core(w: &WarpConfig) -> Self {
+        Self {
+            half: w.half,
+            margin: w.margin,
+            min_views: w.min_views,
+            w_patch11: w.w_patch11,
+            w_patch7: w.w_patch7,
+            w_patch: w.w_patch,
+            w_center: w.w_center,
+            center_beta: w.center_beta,
+        }
+    }
+
+    pub fn to_core(&self) -> WarpConfig {
+        WarpConfig {
+            half: self.half,
+            margin: self.margin,
+            min_views: self.min_views,
+            w_patch11: self.w_patch11,
+            w_patch7: self.w_patch7,
+            w_patch: self.w_patch,
+            w_center: self.w_center,
+            center_beta: self.center_beta,
+        }
+    }
+}
+
+fn grid_section(g: &GridConfig) -> GridSection {
+    GridSection {
+        channels: g.channels,
+        cell_sizes: g.cell_sizes[..g.levels as usize].to_vec(),
+    }
+}
+
+impl Config {
+    /// The paper's values (48 samples per ray and 4096 pixels per iteration are ours: the
+    /// paper does not give them).
+    pub fn paper() -> Self {
+        let m = MapperConfig::paper(4096);
+        Self {
+            seed: 0,
+            model: ModelSection {
+                grid_kind: "factorized".into(),
+                geometry: grid_section(&GridConfig::hi_map_geometry()),
+                appearance: grid_section(&GridConfig::hi_map_appearance()),
+                hidden: 32,
+                hidden_layers: 2,
+                dual_path: true,
+                render_mode: "sdf-density".into(),
+                samples: 48,
+                beta_init: 10.0,
+                grid_init_std: 0.01,
+                sdf_bias_init: 0.3,
+            },
+            mapper: MapperSection {
+                local_frames: m.local_frames,
+                window_keyframes: m.window_keyframes,
+                update_every: m.update_every,
+                init_frames: m.init_frames,
+                init_iters: m.init_iters,
+                init_color_iters: m.init_color_iters,
+                iters: m.iters,
+                pixels: m.pixels,
+                border: m.border,
+                lambda_color_init: m.lambda_color_init,
+                lambda_color: m.lambda_color,
+                lambda_warp: m.lambda_warp,
+                warp: WarpSection::from_core(&m.warp),
+                max_keyframes: m.max_keyframes,
+                keyframe_overflow: "thin".into(),
+                overlap_pixels: m.overlap_pixels,
+                overlap_points: m.overlap_points,
+                overlap_margin: m.overlap_margin,
+            },
+            adam: AdamSection {
+                grid_lr: 0.01,
+                mlp_lr: 1e-5,
+                beta_lr: 1e-5,
+            },
+            scene: SceneSection {
+                min: None,
+                max: None,
+                synthetic_margin: 0.1,
+                path_depth: 3.0,
+                path_margin: 0.5,
+            },
+            eval: EvalSection {
+                every: 1,
+                scale: 0.5,
+                renders: 4,
+                mesh_resolution: 0.02,
+                mesh_samples: 200_000,
+                cull: "auto".into(),
+            },
+        }
+    }
+
+    /// Sized for a 2-core CPU: geometry 4 levels (64..8 cm), appearance 24 / 6 cm with 16
+    /// channels, 24 samples per ray, 300 initialisation iterations, 512 pixels, 10 online
+    /// iterations, a cache of 128 keyframes, decoder and beta learning rate 1e-3 (measured on
+    /// ICL 320x240, 30 frames: the paper's 1e-5 gives PSNR 12 dB after 300 iterations, 1e-3
+    /// gives 19.5 dB and Depth L1 10.8 cm instead of 25 cm).
+    pub fn small() -> Self {
+        let mut c = Self::paper();
+        c.adam.mlp_lr = 1e-3;
+        c.adam.beta_lr = 1e-3;
+        c.model.geometry.cell_sizes = vec![0.64, 0.32, 0.16, 0.08];
+        c.model.appearance = GridSection {
+            channels: 16,
+            cell_sizes: vec![0.24, 0.06],
+        };
+        c.model.samples = 24;
+        c.mapper.init_iters = 300;
+        c.mapper.init_color_iters = 100;
+        c.mapper.iters = 10;
+        c.mapper.pixels = 512;
+        c.mapper.max_keyframes = 128;
+        c.eval.mesh_resolution = 0.04;
+        c.eval.mesh_samples = 50_000;
+        c
+    }
+
+    /// A named preset.
+    pub fn preset(name: &str) -> anyhow::Result<Self> {
+        match name {
+            "small" => Ok(Self::small()),
+            "paper" => Ok(Self::paper()),
+            other => bail!("unknown preset '{other}': use small or paper"),
+        }
+    }
+
+    /// Reads a TOML file (missing fields take the `small` preset's values).
+    pub fn from_file(path: &Path) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading configuration {}", path.display()))?;
+        Self::from_toml(&text).with_context(|| format!("in configuration {}", path.display()))
+    }
+
+    pub fn from_toml(text: &str) -> anyhow::Result<Self> {
+        let c: Config = toml::from_str(text).context("parsing TOML")?;
+        c.validate()?;
+        Ok(c)
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("the configuration serialises")
+    }
+
+    /// Checks what the core does not check itself (names, presence of both bounds, eval).
+    pub fn validate(&self) -> anyhow::Result<()> {
+        self.grid_kind()?;
+        self.render_mode()?;
+        self.keyframe_overflow()?;
+        if self.scene.min.is_some() != self.scene.max.is_some() {
+            bail!("scene.min and scene.max must be given together");
+        }
+        if !(self.eval.scale > 0.0 && self.eval.scale <= 1.0) {
+            bail!("eval.scale must be in (0, 1]");
+        }
+        if !(self.eval.mesh_resolution > 0.0 && self.eval.mesh_resolution.is_finite()) {
+            bail!("eval.mesh_resolution must be positive");
+        }
+        if !["auto", "none", "frustum", "occlusion"].contains(&self.eval.cull.as_str()) {
+            bail!("eval.cull must be auto, none, frustum or occlusion");
+        }
+        for (name, lr) in [
+            ("grid_lr", self.adam.grid_lr),
+            ("mlp_lr", self.adam.mlp_lr),
+            ("beta_lr", self.adam.beta_lr),
+        ] {
+            if !(lr.is_finite() && lr >= 0.0) {
+                bail!("adam.{name} must be finite and >= 0");
+            }
+        }
+        for (name, g) in [
+            ("geometry", &self.model.geometry),
+            ("appearance", &self.model.appearance),
+        ] {
+            if g.cell_sizes.is_empty() || g.cell_sizes.len() > MAX_LEVELS {
+                bail!("model.{name}.cell_sizes must have 1 to {MAX_LEVELS} levels");
+            }
+        }
+        Ok(())
+    }
+
+    pub fn grid_kind(&self) -> anyhow::Result<GridKind> {
+        Ok(match self.model.grid_kind.as_str() {
+            "factorized" => GridKind::Factorized,
+            "dense" => GridKind::Dense,
+            o => bail!("model.grid_kind '{o}': use factorized or dense"),
+        })
+    }
+
+    pub fn render_mode(&self) -> anyhow::Result<RenderMode> {
+        parse_render_mode(&self.model.render_mode)
+    }
+
+    pub fn keyframe_overflow(&self) -> anyhow::Result<KeyframeOverflow> {
+        Ok(match self.mapper.keyframe_overflow.as_str() {
+            "thin" => KeyframeOverflow::Thin,
+            "drop-oldest" => KeyframeOverflow::DropOldest,
+            o => bail!("mapper.keyframe_overflow '{o}': use thin or drop-oldest"),
+        })
+    }
+
+    fn grid(&self, g: &GridSection) -> anyhow::Result<GridConfig> {
+        let mut cell_sizes = [0.0; MAX_LEVELS];
+        cell_sizes[..g.cell_sizes.len()].copy_from_slice(&g.cell_sizes);
+        Ok(GridConfig {
+            kind: self.grid_kind()?,
+            levels: g.cell_sizes.len() as u32,
+            channels: g.channels,
+            cell_sizes,
+        })
+    }
+
+    /// The core's field configuration over `aabb`.
+    pub fn model_config(&self, aabb: Aabb) -> anyhow::Result<ModelConfig> {
+        self.validate()?;
+        let m = &self.model;
+        Ok(ModelConfig {
+            aabb,
+            geometry_grid: self.grid(&m.geometry)?,
+            appearance_grid: self.grid(&m.appearance)?,
+            hidden: m.hidden,
+            hidden_layers: m.hidden_layers,
+            dual_path: m.dual_path,
+            render_mode: self.render_mode()?,
+            samples: m.samples,
+            beta_init: m.beta_init,
+            grid_init_std: m.grid_init_std,
+            sdf_bias_init: m.sdf_bias_init,
+        })
+    }
+
+    /// The core's mapper configuration.
+    pub fn mapper_config(&self) -> anyhow::Result<MapperConfig> {
+        let m = &self.mapper;
+        Ok(MapperConfig {
+            local_frames: m.local_frames,
+            window_keyframes: m.window_keyframes,
+            update_every: m.update_every,
+            init_frames: m.init_frames,
+            init_iters: m.init_iters,
+            init_color_iters: m.init_color_iters,
+            iters: m.iters,
+            pixels: m.pixels,
+            border: m.border,
+            lambda_color_init: m.lambda_color_init,
+            lambda_color: m.lambda_color,
+            lambda_warp: m.lambda_warp,
+            warp: m.warp.to_core(),
+            max_keyframes: m.max_keyframes,
+            keyframe_overflow: self.keyframe_overflow()?,
+            overlap_pixels: m.overlap_pixels,
+            overlap_points: m.overlap_points,
+            overlap_margin: m.overlap_margin,
+            seed: self.seed,
+        })
+    }
+
+    /// Adam settings per group, in `Group::ALL` order.
+    pub fn adam_config(&self) -> [AdamConfig; NUM_GROUPS] {
+        let a = &self.adam;
+        [
+            AdamConfig::new(a.grid_lr),
+            AdamConfig::new(a.grid_lr),
+            AdamConfig::new(a.mlp_lr),
+            AdamConfig::new(a.mlp_lr),
+            AdamConfig::new(a.beta_lr),
+        ]
+    }
+
+    /// The scene box (see the module documentation) and where it came from.
+    pub fn scene_bounds(
+        &self,
+        dataset_dir: &Path,
+        k: &Intrinsics,
+        poses: &[Pose],
+    ) -> anyhow::Result<(Aabb, &'static str)> {
+        if let (Some(min), Some(max)) = (self.scene.min, self.scene.max) {
+            let b = Aabb::new(min, max);
+            if !b.is_valid() {
+                bail!("scene.min/max do not form a box with positive extent");
+            }
+            return Ok((b, "config"));
+        }
+        let sj = dataset_dir.join("scene.json");
+        if sj.is_file() {
+            let (_, b) = crate::synth::read_scene_json(&sj)?;
+            let m = self.scene.synthetic_margin;
+            return Ok((
+                Aabb::new(b.min.map(|x| x - m), b.max.map(|x| x + m)),
+                "scene.json",
+            ));
+        }
+        if poses.is_empty() {
+            bail!("no frames to derive the scene box from");
+        }
+        let mut lo = [f32::INFINITY; 3];
+        let mut hi = [f32::NEG_INFINITY; 3];
+        let mut add = |p: [f32; 3]| {
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
+            }
+        };
+        let (w, h) = (k.width as f32 - 1.0, k.height as f32 - 1.0);
+        let d = self.scene.path_depth;
+        for p in poses {
+            add(p.origin());
+            for (u, v) in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h), (0.5 * w, 0.5 * h)] {
+                add(p.transform(k.direction(u, v).map(|x| x * d)));
+            }
+        }
+        let m = self.scene.path_margin;
+        let b = Aabb::new(lo.map(|x| x - m), hi.map(|x| x + m));
+        if !b.is_valid() {
+            bail!("could not derive a scene box from the camera path");
+        }
+        Ok((b, "camera path"))
+    }
+}
+
+/// "sdf-density", "sdf-direct" or "occupancy".
+pub fn parse_render_mode(s: &str) -> anyhow::Result<RenderMode> {
+    Ok(match s {
+        "sdf-density" => RenderMode::SdfDensity,
+        "sdf-direct" => RenderMode::SdfDirect,
+        "occupancy" => RenderMode::Occupancy,
+        other => bail!("unknown rendering '{other}': use sdf-density, sdf-direct or occupancy"),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_round_trip_through_toml_and_build_core_configs() {
+        for c in [Config::small(), Config::paper()] {
+            let back = Config::from_toml(&c.to_toml()).unwrap();
+            assert_eq!(back, c);
+            let aabb = Aabb::new([-1.0; 3], [1.0; 3]);
+            let mc = c.model_config(aabb).unwrap();
+            himap_core::model::ModelLayout::new(&mc).unwrap();
+            c.mapper_config().unwrap();
+        }
+        let p = Config::paper()
+            .model_config(Aabb::new([0.0; 3], [1.0; 3]))
+            .unwrap();
+        assert_eq!(p.geometry_grid, GridConfig::hi_map_geometry());
+        assert_eq!(p.samples, 48);
+        assert_eq!(Config::paper().mapper.init_iters, 1500);
+    }
+
+    #[test]
+    fn partial_files_take_defaults_and_bad_values_are_clear_errors() {
+        let c = Config::from_toml("[mapper]\niters = 3\n[model]\nrender_mode = \"occupancy\"\n")
+            .unwrap();
+        assert_eq!(c.mapper.iters, 3);
+        assert_eq!(c.render_mode().unwrap(), RenderMode::Occupancy);
+        assert_eq!(c.mapper.pixels, Config::small().mapper.pixels);
+        let e = Config::from_toml("[model]\nrender_mode = \"nerf\"\n").unwrap_err();
+        assert!(format!("{e:#}").contains("nerf"), "{e:#}");
+        let e = Config::from_toml("[mapper]\nitres = 3\n").unwrap_err();
+        assert!(format!("{e:#}").contains("itres"), "{e:#}");
+        let e = Config::from_toml("[scene]\nmin = [0.0, 0.0, 0.0]\n").unwrap_err();
+        assert!(format!("{e:#}").contains("together"), "{e:#}");
+    }
+
+    #[test]
+    fn camera_path_bounds_contain_the_cameras_and_the_view_depth() {
+        let c = Config::small();
+        let k = crate::synth::synth_intrinsics(64, 48);
+        let (b, src) = c
+            .scene_bounds(Path::new("/nonexistent"), &k, &[Pose::IDENTITY])
+            .unwrap();
+        assert_eq!(src, "camera path");
+        // camera at 0 looking along +z: z spans [0, 3] plus the 0.5 margin
+        assert!(
+            (b.min[2] + 0.5).abs() < 1e-6 && (b.max[2] - 3.5).abs() < 1e-6,
+            "{b:?}"
+        );
+        let mut c2 = c.clone();
+        c2.scene.min = Some([-1.0; 3]);
+        c2.scene.max = Some([2.0; 3]);
+        let (b, src) = c2.scene_bounds(Path::new("/x"), &k, &[]).unwrap();
+        assert_eq!((b, src), (Aabb::new([-1.0; 3], [2.0; 3]), "config"));
+    }
+}

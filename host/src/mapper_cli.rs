@@ -1,0 +1,662 @@
+//! `himap map` and `himap demo`: replay a posed sequence through the core's [`Mapper`] on the
+//! multi-threaded CPU backend, evaluate after every mapping update, and write the outputs:
+//! `metrics.csv`, `summary.json`, `mesh.ply`, `renders/`, `map.safetensors`.
+//!
+//! Evaluation after an update renders the update's newest frame at `eval.scale` of the input
+//! resolution (bin-centre samples, no jitter) and compares it with the input image resized the
+//! same way (PSNR, SSIM) and, when the dataset has depth, with the ground-truth depth (Depth L1
+//! in cm over the pixels with valid depth).
+//!
+//! `map.safetensors` holds `params.<group>`, `adam_m.<group>`, `adam_v.<group>` (f32) and the
+//! metadata `himap_config` (the run's TOML), `himap_aabb` (JSON `[[min], [max]]`) and
+//! `adam_t`; [`load_map`] rebuilds the field from it alone.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context};
+use himap_core::camera::{Intrinsics, Pose};
+use himap_core::mapper::{view_rays, IterInfo, Mapper, UpdateKind, UpdateReport};
+use himap_core::mapping::{pack_rgba8, PixelResult, PixelSample};
+use himap_core::model::{Group, ModelLayout, Ray, RayResult};
+use himap_core::step::{Backend, ImageStore};
+use himap_core::Aabb;
+use serde::Serialize;
+
+use crate::backend::{ModelData, ParallelCpuBackend};
+use crate::config::Config;
+use crate::dataset::{self, LoadOptions, RgbImage};
+
+/// Options of [`run_map`].
+#[derive(Clone, Debug)]
+pub struct MapOptions {
+    pub dataset: PathBuf,
+    pub out: PathBuf,
+    pub config: Config,
+    /// Source frame range and stride.
+    pub start: usize,
+    pub end: Option<usize>,
+    pub stride: usize,
+    pub resize: Option<(u32, u32)>,
+    /// Worker threads (0 = all cores).
+    pub threads: usize,
+    /// Show a progress bar.
+    pub progress: bool,
+}
+
+/// One row of `metrics.csv`.
+#[derive(Clone, Debug, Serialize)]
+pub struct UpdateMetrics {
+    /// Index of the update's newest frame in the source sequence.
+    pub frame: usize,
+    pub kind: String,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub depth_l1_cm: Option<f64>,
+    /// Loss of the update's first and last iteration.
+    pub loss_first: f32,
+    pub loss: f32,
+    pub color_loss: f32,
+    pub warp_loss: f32,
+    /// Fraction of the last iteration's pixels with a valid warp term.
+    pub warp_valid: f32,
+    pub window_keyframes: u32,
+    pub iters: u32,
+    /// Optimisation time of the update (s), excluding evaluation.
+    pub seconds: f64,
+}
+
+/// `summary.json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct MapSummary {
+    pub dataset: PathBuf,
+    pub frames: usize,
+    pub width: u32,
+    pub height: u32,
+    pub backend: String,
+    pub threads: usize,
+    pub scene_box: [[f32; 3]; 2],
+    pub scene_box_source: String,
+    pub updates: usize,
+    pub iterations: u32,
+    pub mean_psnr: Option<f64>,
+    pub mean_ssim: Option<f64>,
+    pub mean_depth_l1_cm: Option<f64>,
+    /// Accuracy, Completion (cm), Completion ratio (%) when a ground truth exists.
+    pub mesh: Option<crate::eval::MeshMetrics>,
+    pub mesh_ground_truth: Option<String>,
+    pub mesh_error: Option<String>,
+    pub mesh_faces: usize,
+    pub seconds_total: f64,
+    pub seconds_mapping: f64,
+    pub seconds_per_iteration: f64,
+    pub seconds_per_frame: f64,
+    pub parameters: usize,
+    pub config: Config,
+}
+
+/// Builds the parallel backend for a configuration over `aabb` with image slots for `k`.
+pub fn build_backend(
+    config: &Config,
+    aabb: Aabb,
+    k: &Intrinsics,
+    threads: usize,
+) -> anyhow::Result<ParallelCpuBackend> {
+    let mc = config.model_config(aabb)?;
+    let layout = ModelLayout::new(&mc).map_err(|e| anyhow::anyhow!("model: {e}"))?;
+    let data = ModelData::new(layout, config.seed as u32)
+        .map_err(|e| anyhow::anyhow!("model init: {e}"))?;
+    let mapper = config.mapper_config()?;
+    Ok(
+        ParallelCpuBackend::new(data, config.adam_config(), threads)?.with_images(ImageStore {
+            width: k.width,
+            height: k.height,
+            slots: mapper.slots_needed(),
+        }),
+    )
+}
+
+/// Renders a view (colour, depth, opacity per pixel, row-major).
+pub fn render_view<B: Backend>(
+    backend: &mut B,
+    k: &Intrinsics,
+    pose: &Pose,
+) -> anyhow::Result<Vec<RayResult>>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let n = k.width as usize * k.height as usize;
+    let mut rays = vec![
+        Ray {
+            origin: [0.0; 3],
+            dir: [0.0; 3],
+            target: [0.0; 3],
+            target_depth: 0.0,
+        };
+        n
+    ];
+    view_rays(k, pose, &mut rays).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut out = vec![RayResult::default(); n];
+    backend.render(&rays, &mut out)?;
+    Ok(out)
+}
+
+/// Packs an RGB image into RGBA8 words.
+pub fn pack_image(img: &RgbImage) -> Vec<u32> {
+    img.data
+        .as_chunks::<3>()
+        .0
+        .iter()
+        .map(|c| pack_rgba8(*c))
+        .collect()
+}
+
+/// Writes the map: parameters, Adam moments, configuration and box.
+pub fn save_map(path: &Path, config: &Config, data: &ModelData) -> anyhow::Result<()> {
+    use safetensors::tensor::{Dtype, TensorView};
+    let mut bufs: Vec<(String, Vec<u8>, usize)> = Vec::new();
+    for g in Group::ALL {
+        let i = g as usize;
+        for (prefix, v) in [
+            ("params", &data.params[i]),
+            ("adam_m", &data.m[i]),
+            ("adam_v", &data.v[i]),
+        ] {
+            let bytes: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+            bufs.push((format!("{prefix}.{}", g.name()), bytes, v.len()));
+        }
+    }
+    let views = bufs
+        .iter()
+        .map(|(n, b, len)| Ok((n.clone(), TensorView::new(Dtype::F32, vec![*len], b)?)))
+        .collect::<Result<Vec<_>, safetensors::SafeTensorError>>()?;
+    let aabb = data.layout.config.aabb;
+    let mut meta = HashMap::new();
+    meta.insert("himap_config".to_string(), config.to_toml());
+    meta.insert(
+        "himap_aabb".to_string(),
+        serde_json::to_string(&[aabb.min, aabb.max])?,
+    );
+    meta.insert("adam_t".to_string(), data.t.to_string());
+    safetensors::serialize_to_file(views, Some(meta), path)
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}
+
+/// Reads a map written by [`save_map`]: its configuration and model data.
+pub fn load_map(path: &Path) -> anyhow::Result<(Config, ModelData)> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes)
+        .with_context(|| format!("{}: not a safetensors file", path.display()))?;
+    let meta = header
+        .metadata()
+        .clone()
+        .with_context(|| format!("{}: no himap metadata", path.display()))?;
+    let get = |k: &str| {
+        meta.get(k)
+            .with_context(|| format!("{}: metadata '{k}' missing", path.display()))
+    };
+    let config = Config::from_toml(get("himap_config")?)?;
+    let [min, max]: [[f32; 3]; 2] = serde_json::from_str(get("himap_aabb")?)?;
+    let t: u32 = get("adam_t")?.parse().context("adam_t")?;
+    let layout = ModelLayout::new(&config.model_config(Aabb::new(min, max))?)
+        .map_err(|e| anyhow::anyhow!("model: {e}"))?;
+    let st = safetensors::SafeTensors::deserialize(&bytes)?;
+    let mut data = ModelData::new(layout, 0).map_err(|e| anyhow::anyhow!("{e}"))?;
+    for g in Group::ALL {
+        let i = g as usize;
+        for (prefix, dst) in [
+            ("params", &mut data.params[i]),
+            ("adam_m", &mut data.m[i]),
+            ("adam_v", &mut data.v[i]),
+        ] {
+            let name = format!("{prefix}.{}", g.name());
+            let t = st
+                .tensor(&name)
+                .with_context(|| format!("{}: tensor {name}", path.display()))?;
+            if t.dtype() != safetensors::Dtype::F32 || t.data().len() != 4 * dst.len() {
+                bail!(
+                    "{}: tensor {name} has the wrong type or length for the configuration",
+                    path.display()
+                );
+            }
+            for (d, c) in dst.iter_mut().zip(t.data().as_chunks::<4>().0) {
+                *d = f32::from_le_bytes(*c);
+            }
+        }
+    }
+    data.t = t;
+    Ok((config, data))
+}
+
+/// A blue-to-red colour map of depth in [lo, hi] (black where there is none).
+fn depth_color(d: f32, lo: f32, hi: f32) -> [u8; 3] {
+    if d <= 0.0 || !d.is_finite() {
+        return [0, 0, 0];
+    }
+    let x = ((d - lo) / (hi - lo).max(1e-6)).clamp(0.0, 1.0);
+    let r = (1.5 - (4.0 * x - 3.0).abs()).clamp(0.0, 1.0);
+    let g = (1.5 - (4.0 * x - 2.0).abs()).clamp(0.0, 1.0);
+    let b = (1.5 - (4.0 * x - 1.0).abs()).clamp(0.0, 1.0);
+    [(r * 255.0) as u8, (g * 255.0) as u8, (b * 255.0) as u8]
+}
+
+/// Writes `input | rendered | rendered depth | gt depth` side by side.
+fn write_render(
+    path: &Path,
+    input: &RgbImage,
+    out: &[RayResult],
+    gt_depth: Option<&[f32]>,
+) -> anyhow::Result<()> {
+    let (w, h) = (input.width as usize, input.height as usize);
+    let panels = if gt_depth.is_some() { 4 } else { 3 };
+    let mut img = vec![0u8; w * panels * h * 3];
+    let (mut lo, mut hi) = (f32::INFINITY, 0.0f32);
+    for d in gt_depth
+        .unwrap_or(&[])
+        .iter()
+        .copied()
+        .chain(out.iter().map(|r| r.depth))
+    {
+        if d > 0.0 && d.is_finite() {
+            lo = lo.min(d);
+            hi = hi.max(d);
+        }
+    }
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let mut put = |panel: usize, c: [u8; 3]| {
+                let o = 3 * (y * w * panels + panel * w + x);
+                img[o..o + 3].copy_from_slice(&c);
+            };
+            let q = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+            put(0, [0, 1, 2].map(|c| q(input.data[3 * i + c])));
+            put(1, out[i].color.map(q));
+            put(2, depth_color(out[i].depth, lo, hi));
+            if let Some(g) = gt_depth {
+                put(3, depth_color(g[i], lo, hi));
+            }
+        }
+    }
+    image::save_buffer(
+        path,
+        &img,
+        (w * panels) as u32,
+        h as u32,
+        image::ExtendedColorType::Rgb8,
+    )
+    .with_context(|| format!("writing {}", path.display()))
+}
+
+fn mean(v: impl Iterator<Item = f64>) -> Option<f64> {
+    let (mut s, mut n) = (0.0, 0usize);
+    for x in v {
+        if x.is_finite() {
+            s += x;
+            n += 1;
+        }
+    }
+    (n > 0).then(|| s / n as f64)
+}
+
+/// Maps a sequence and writes every output into `opts.out`.
+pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
+    let t_start = Instant::now();
+    let cfg = &opts.config;
+    cfg.validate()?;
+    let lo = LoadOptions {
+        start: opts.start,
+        end: opts.end,
+        stride: opts.stride.max(1),
+        resize: opts.resize,
+        crop_edge: 0,
+        load_depth: true,
+    };
+    let ds = dataset::open(&opts.dataset, &lo)
+        .with_context(|| format!("opening dataset {}", opts.dataset.display()))?;
+    let k = ds.intrinsics();
+    let n = ds.len();
+    let poses: Vec<Pose> = (0..n).map(|i| ds.pose(i)).collect();
+    let (aabb, box_src) = cfg.scene_bounds(&opts.dataset, &k, &poses)?;
+    std::fs::create_dir_all(opts.out.join("renders"))
+        .with_context(|| format!("creating {}", opts.out.display()))?;
+
+    let backend = build_backend(cfg, aabb, &k, opts.threads)?;
+    let backend_name = backend.name().to_string();
+    let threads = backend.threads();
+    let params = backend.layout().param_count();
+    let mcfg = cfg.mapper_config()?;
+    let mut px = vec![PixelSample::default(); mcfg.pixels as usize];
+    let mut res = vec![PixelResult::default(); mcfg.pixels as usize];
+    let mut mapper = Mapper::new(backend, mcfg, k, &mut px, &mut res)
+        .map_err(|e| anyhow::anyhow!("mapper: {e}"))?;
+
+    let ek = {
+        let w = ((k.width as f32 * cfg.eval.scale).round() as u32).max(1);
+        let h = ((k.height as f32 * cfg.eval.scale).round() as u32).max(1);
+        k.resized(w, h)
+    };
+    let expected_updates = if n >= mcfg.init_frames as usize {
+        1 + (n - mcfg.init_frames as usize).div_ceil(mcfg.update_every as usize)
+    } else {
+        1
+    };
+    let render_every = (expected_updates / cfg.eval.renders.max(1) as usize).max(1);
+
+    let pb = if opts.progress {
+        let pb = indicatif::ProgressBar::new(n as u64);
+        pb.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:30}] frame {pos}/{len} {msg}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+        );
+        pb
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let mut rows: Vec<UpdateMetrics> = Vec::new();
+    let mut mapping_s = 0.0f64;
+    let mut last_psnr = f64::NAN;
+    let mut last_frame: Option<crate::dataset::Frame> = None;
+
+    let handle = |mapper: &mut Mapper<'_, ParallelCpuBackend>,
+                  report: UpdateReport,
+                  frame: &crate::dataset::Frame,
+                  seconds: f64,
+                  rows: &mut Vec<UpdateMetrics>,
+                  last_psnr: &mut f64|
+     -> anyhow::Result<()> {
+        let u = rows.len();
+        let eval = cfg.eval.every > 0 && u.is_multiple_of(cfg.eval.every as usize);
+        let (mut psnr, mut ssim, mut dl1) = (f64::NAN, f64::NAN, None);
+        if eval {
+            let out = render_view(mapper.backend_mut(), &ek, &frame.pose)?;
+            let input = frame.rgb.resized(ek.width, ek.height);
+            let rendered: Vec<f32> = out.iter().flat_map(|r| r.color).collect();
+            psnr = crate::metrics::psnr(&rendered, &input.data);
+            ssim = crate::metrics::ssim(
+                &rendered,
+                &input.data,
+                ek.width as usize,
+                ek.height as usize,
+            );
+            let gt = frame
+                .depth
+                .as_ref()
+                .map(|d| d.resized(ek.width, ek.height).data);
+            if let Some(g) = &gt {
+                let depth: Vec<f32> = out.iter().map(|r| r.depth).collect();
+                dl1 = crate::metrics::depth_l1_cm(&depth, g);
+            }
+            if u.is_multiple_of(render_every) {
+                let p = opts
+                    .out
+                    .join("renders")
+                    .join(format!("frame{:06}.png", frame.index));
+                write_render(&p, &input, &out, gt.as_deref())?;
+            }
+            *last_psnr = psnr;
+        }
+        rows.push(UpdateMetrics {
+            frame: frame.index,
+            kind: match report.kind {
+                UpdateKind::Init => "init".into(),
+                UpdateKind::Online => "online".into(),
+            },
+            psnr,
+            ssim,
+            depth_l1_cm: dl1,
+            loss_first: report.first.loss,
+            loss: report.last.loss,
+            color_loss: report.last.color_loss,
+            warp_loss: report.last.warp_loss,
+            warp_valid: report.last.warp_valid,
+            window_keyframes: report.window_keyframes,
+            iters: report.iters,
+            seconds,
+        });
+        Ok(())
+    };
+
+    for i in 0..n {
+        let frame = ds.frame(i)?;
+        let rgba = pack_image(&frame.rgb);
+        let t0 = Instant::now();
+        let lp = last_psnr;
+        let mut observe = |info: &IterInfo| {
+            pb.set_message(format!(
+                "{} it {}/{} loss {:.4} (c {:.4} w {:.4}) PSNR {:.2}",
+                if info.kind == UpdateKind::Init {
+                    "init"
+                } else {
+                    "map"
+                },
+                info.iter + 1,
+                info.iters,
+                info.loss,
+                info.color_loss,
+                info.warp_loss,
+                lp
+            ));
+            if info.iter.is_multiple_of(10) {
+                pb.tick();
+            }
+        };
+        let rep = mapper
+            .push_frame_observed(&rgba, frame.pose, &mut observe)
+            .map_err(|e| anyhow::anyhow!("frame {}: {e}", frame.index))?;
+        let dt = t0.elapsed().as_secs_f64();
+        if let Some(r) = rep {
+            mapping_s += dt;
+            handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
+        }
+        pb.inc(1);
+        last_frame = Some(frame);
+    }
+    if let Some(frame) = last_frame {
+        let t0 = Instant::now();
+        if let Some(r) = mapper
+            .flush(&mut |_: &IterInfo| {})
+            .map_err(|e| anyhow::anyhow!("final update: {e}"))?
+        {
+            let dt = t0.elapsed().as_secs_f64();
+            mapping_s += dt;
+            handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
+        }
+    }
+    pb.finish_and_clear();
+    let iterations = mapper.iterations();
+
+    // metrics.csv
+    let csv_path = opts.out.join("metrics.csv");
+    let mut csv = std::io::BufWriter::new(
+        std::fs::File::create(&csv_path)
+            .with_context(|| format!("writing {}", csv_path.display()))?,
+    );
+    writeln!(
+        csv,
+        "frame,kind,psnr,ssim,depth_l1_cm,loss_first,loss,color_loss,warp_loss,warp_valid,window_keyframes,iters,seconds"
+    )?;
+    for r in &rows {
+        writeln!(
+            csv,
+            "{},{},{:.4},{:.4},{},{:.6},{:.6},{:.6},{:.6},{:.4},{},{},{:.3}",
+            r.frame,
+            r.kind,
+            r.psnr,
+            r.ssim,
+            r.depth_l1_cm.map(|d| format!("{d:.3}")).unwrap_or_default(),
+            r.loss_first,
+            r.loss,
+            r.color_loss,
+            r.warp_loss,
+            r.warp_valid,
+            r.window_keyframes,
+            r.iters,
+            r.seconds
+        )?;
+    }
+    csv.flush()?;
+
+    // mesh
+    let backend = mapper.into_backend();
+    let mesh = crate::mesh::extract_mesh(
+        aabb,
+        cfg.eval.mesh_resolution,
+        |p: &[[f32; 3]]| {
+            let mut o = vec![0.0; p.len()];
+            backend.sdf(p, &mut o);
+            o
+        },
+        Some(|p: &[[f32; 3]]| {
+            let mut o = vec![[0.0; 3]; p.len()];
+            backend.color(p, &mut o);
+            o
+        }),
+    );
+    let mesh_path = opts.out.join("mesh.ply");
+    mesh.write_ply(&mesh_path)?;
+    let has_gt = opts.dataset.join("gt_mesh.ply").is_file() || ds.has_depth();
+    let (mesh_metrics, mesh_gt, mesh_err) = if has_gt && !mesh.faces.is_empty() {
+        use crate::eval::{Culling, EvalOptions};
+        let gt_mesh = opts.dataset.join("gt_mesh.ply").is_file();
+        let culling = match cfg.eval.cull.as_str() {
+            "none" => Culling::None,
+            "frustum" => Culling::Frustum,
+            "occlusion" => Culling::FrustumOcclusion,
+            _ if gt_mesh => Culling::None,
+            _ => Culling::Frustum,
+        };
+        let eo = EvalOptions {
+            n_samples: cfg.eval.mesh_samples,
+            culling,
+            ..EvalOptions::default()
+        };
+        match crate::eval::eval_report(&mesh_path, &opts.dataset, &eo) {
+            Ok(r) => (Some(r.metrics), Some(r.gt_kind), None),
+            Err(e) => (None, None, Some(format!("{e:#}"))),
+        }
+    } else if has_gt {
+        (None, None, Some("empty reconstruction".to_string()))
+    } else {
+        (None, None, None)
+    };
+
+    save_map(&opts.out.join("map.safetensors"), cfg, backend.data())?;
+
+    let summary = MapSummary {
+        dataset: opts.dataset.clone(),
+        frames: n,
+        width: k.width,
+        height: k.height,
+        backend: backend_name,
+        threads,
+        scene_box: [aabb.min, aabb.max],
+        scene_box_source: box_src.to_string(),
+        updates: rows.len(),
+        iterations,
+        mean_psnr: mean(rows.iter().map(|r| r.psnr)),
+        mean_ssim: mean(rows.iter().map(|r| r.ssim)),
+        mean_depth_l1_cm: mean(rows.iter().filter_map(|r| r.depth_l1_cm)),
+        mesh: mesh_metrics,
+        mesh_ground_truth: mesh_gt,
+        mesh_error: mesh_err,
+        mesh_faces: mesh.faces.len(),
+        seconds_total: t_start.elapsed().as_secs_f64(),
+        seconds_mapping: mapping_s,
+        seconds_per_iteration: mapping_s / iterations.max(1) as f64,
+        seconds_per_frame: mapping_s / n.max(1) as f64,
+        parameters: params,
+        config: cfg.clone(),
+    };
+    let sp = opts.out.join("summary.json");
+    std::fs::write(&sp, serde_json::to_string_pretty(&summary)?)
+        .with_context(|| format!("writing {}", sp.display()))?;
+    Ok(summary)
+}
+
+/// Prints a short table of a summary.
+pub fn summary_table(s: &MapSummary) -> String {
+    let f = |x: Option<f64>, p: usize| x.map(|v| format!("{v:.p$}")).unwrap_or("-".into());
+    let mut t = String::new();
+    t += &format!(
+        "{} frames {}x{}, {} updates, {} iterations, backend {}\n",
+        s.frames, s.width, s.height, s.updates, s.iterations, s.backend
+    );
+    t += &format!(
+        "PSNR {} dB | SSIM {} | Depth L1 {} cm\n",
+        f(s.mean_psnr, 2),
+        f(s.mean_ssim, 3),
+        f(s.mean_depth_l1_cm, 2)
+    );
+    match &s.mesh {
+        Some(m) => {
+            t += &format!(
+                "mesh ({} faces) vs {}: Accuracy {:.2} cm | Completion {:.2} cm | Completion ratio {:.1} %\n",
+                s.mesh_faces,
+                s.mesh_ground_truth.as_deref().unwrap_or("?"),
+                m.accuracy_cm,
+                m.completion_cm,
+                m.completion_ratio_pct
+            )
+        }
+        None => {
+            t += &format!(
+                "mesh ({} faces): {}\n",
+                s.mesh_faces,
+                s.mesh_error.as_deref().unwrap_or("no ground truth")
+            )
+        }
+    }
+    t += &format!(
+        "time {:.1} s total, mapping {:.1} s ({:.1} ms per iteration, {:.2} s per frame)",
+        s.seconds_total,
+        s.seconds_mapping,
+        1e3 * s.seconds_per_iteration,
+        s.seconds_per_frame
+    );
+    t
+}
+
+/// `himap demo`: synthesises a small room (into `out`, else a temporary directory), maps it
+/// with `config` and returns the summary.
+pub fn run_demo(
+    out: Option<&Path>,
+    config: Config,
+    frames: usize,
+    size: (u32, u32),
+    threads: usize,
+    progress: bool,
+) -> anyhow::Result<(MapSummary, PathBuf)> {
+    let root = match out {
+        Some(p) => p.to_path_buf(),
+        None => std::env::temp_dir().join(format!("himap-demo-{}", std::process::id())),
+    };
+    let data = root.join("room");
+    let synth = crate::synth::SynthOptions {
+        frames,
+        width: size.0,
+        height: size.1,
+        seed: config.seed,
+    };
+    crate::synth::write_synthetic(&data, &synth)
+        .with_context(|| format!("writing the synthetic room to {}", data.display()))?;
+    let opts = MapOptions {
+        dataset: data,
+        out: root.join("map"),
+        config,
+        start: 0,
+        end: None,
+        stride: 1,
+        resize: None,
+        threads,
+        progress,
+    };
+    let s = run_map(&opts)?;
+    Ok((s, opts.out))
+}
