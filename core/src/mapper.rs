@@ -104,6 +104,11 @@ pub struct MapperConfig {
     pub overlap_margin: f32,
     /// Seed of pixel sampling, keyframe choice and stratified jitter.
     pub seed: u64,
+    /// DIM-SLAM's depth prior during the first `depth_prior_iters` initialisation iterations:
+    /// weight (per pixel, averaged like the colour term; 0 = off) and target depth (metres).
+    pub lambda_depth_prior: f32,
+    pub depth_prior: f32,
+    pub depth_prior_iters: u32,
 }
 
 impl MapperConfig {
@@ -129,6 +134,9 @@ impl MapperConfig {
             overlap_points: 16,
             overlap_margin: 20.0,
             seed: 0,
+            lambda_depth_prior: 1.0,
+            depth_prior: 1.5,
+            depth_prior_iters: 150,
         }
     }
 
@@ -807,6 +815,12 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 color_to_geometry: init && it < self.cfg.init_color_iters,
                 seed: hash_u32(self.total_iters ^ (self.cfg.seed as u32)),
                 warp: self.cfg.warp,
+                lambda_depth_prior: if init && it < self.cfg.depth_prior_iters {
+                    self.cfg.lambda_depth_prior
+                } else {
+                    0.0
+                },
+                depth_prior: self.cfg.depth_prior,
             };
             let batch = MapBatch {
                 k: self.k,

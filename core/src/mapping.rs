@@ -105,6 +105,12 @@ pub struct MappingLoss {
     /// Stratified jitter seed of this iteration.
     pub seed: u32,
     pub warp: WarpConfig,
+    /// Weight of DIM-SLAM's "fake depth" prior `smoothL1_0.1(D - depth_prior)` (scaled by
+    /// `color_scale`), which pulls the rendered depth towards a plausible value during the
+    /// first initialisation iterations so that the warping loss has valid views. 0 = off.
+    pub lambda_depth_prior: f32,
+    /// Target depth of the prior (camera z, metres; DIM-SLAM uses 1.5).
+    pub depth_prior: f32,
 }
 
 /// What one sampled pixel produced.
@@ -189,6 +195,12 @@ pub fn pixel_train<P: ParamRead + ?Sized, I: FrameImages + ?Sized, S: ModelGradS
         result.warp_loss = kw * w.loss;
         result.warp_views = w.valid_views;
         d_depth = kw * w.d_depth;
+    }
+    if loss.lambda_depth_prior != 0.0 && cache.n > 0 {
+        let (v, dv) = crate::loss::smooth_l1(out.depth - loss.depth_prior, 0.1);
+        let kp = loss.color_scale * loss.lambda_depth_prior;
+        result.color_loss += kp * v;
+        d_depth += kp * dv;
     }
     ray_backward(
         layout,

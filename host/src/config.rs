@@ -109,6 +109,11 @@ pub struct MapperSection {
     pub lambda_color: f32,
     pub lambda_warp: f32,
     pub warp: WarpSection,
+    /// DIM-SLAM's depth prior `smoothL1(D - depth_prior)` during the first
+    /// `depth_prior_iters` initialisation iterations (weight 0 = off; DIM-SLAM: 1.5 m, 150).
+    pub lambda_depth_prior: f32,
+    pub depth_prior: f32,
+    pub depth_prior_iters: u32,
     /// Keyframe cache capacity.
     pub max_keyframes: u32,
     /// When the cache is full: "thin" (drop every other keyframe) or "drop-oldest".
@@ -281,6 +286,9 @@ impl Config {
                 lambda_color: m.lambda_color,
                 lambda_warp: m.lambda_warp,
                 warp: WarpSection::from_core(&m.warp),
+                lambda_depth_prior: m.lambda_depth_prior,
+                depth_prior: m.depth_prior,
+                depth_prior_iters: m.depth_prior_iters,
                 max_keyframes: m.max_keyframes,
                 keyframe_overflow: "thin".into(),
                 overlap_pixels: m.overlap_pixels,
@@ -327,6 +335,7 @@ impl Config {
         c.model.samples = 24;
         c.mapper.init_iters = 300;
         c.mapper.init_color_iters = 100;
+        c.mapper.depth_prior_iters = 60;
         c.mapper.iters = 10;
         c.mapper.pixels = 512;
         c.mapper.max_keyframes = 128;
@@ -465,6 +474,9 @@ impl Config {
             lambda_color: m.lambda_color,
             lambda_warp: m.lambda_warp,
             warp: m.warp.to_core(),
+            lambda_depth_prior: m.lambda_depth_prior,
+            depth_prior: m.depth_prior,
+            depth_prior_iters: m.depth_prior_iters,
             max_keyframes: m.max_keyframes,
             keyframe_overflow: self.keyframe_overflow()?,
             overlap_pixels: m.overlap_pixels,

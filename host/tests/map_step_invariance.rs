@@ -70,6 +70,8 @@ fn loss(step: u64) -> MappingLoss {
         color_to_geometry: step == 0,
         seed: 7 + step as u32,
         warp,
+        lambda_depth_prior: if step == 0 { 0.5 } else { 0.0 },
+        depth_prior: 1.5,
     }
 }
 
