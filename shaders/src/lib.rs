@@ -24,9 +24,13 @@
 
 pub mod words;
 
+use himap_core::adam::{self, AdamStep};
 use himap_core::camera::{Intrinsics, Pose};
 use himap_core::grid::{self, MAX_GRID_FEATURES};
 use himap_core::mlp::{self, MlpScratch, MAX_OUT, MAX_WIDTH};
+use himap_core::model::{
+    self, Group, LossConfig, ModelGradSink, Params, Ray, RayCache, SampleScratch,
+};
 use himap_core::{fixed, rng, Aabb, GradSink};
 use spirv_std::arch::atomic_i_add;
 use spirv_std::glam::UVec3;
@@ -212,4 +216,379 @@ pub fn grid_forward_cs(
         out[base + k] = feat[k];
         k += 1;
     }
+}
+
+/// Floats of one [`Ray`] in the rays buffer: origin (3), dir (3), target (3), target_depth.
+pub const RAY_FLOATS: usize = 10;
+/// Floats of one [`model::RayResult`] in the results buffer: colour (3), depth, opacity, loss.
+pub const RESULT_FLOATS: usize = 6;
+
+/// Push constants of [`train_ray_cs`]: the [`LossConfig`] of the step plus the item range.
+#[derive(Clone, Copy)]
+#[repr(C)]
+pub struct TrainPush {
+    /// Rays in this dispatch; invocation `i` handles ray `first + i`.
+    pub n: u32,
+    /// Index of the dispatch's first ray (dispatches larger than the workgroup-count limit are
+    /// split); the ray index is the ray's id for the stratified jitter.
+    pub first: u32,
+    pub seed: u32,
+    /// `LossConfig::color_to_geometry` as 0 / 1.
+    pub color_to_geometry: u32,
+    pub lambda_color: f32,
+    pub lambda_depth: f32,
+    pub ray_scale: f32,
+    pub _pad: u32,
+}
+
+/// Push constants of [`adam_cs`]: the [`AdamStep`] scalars plus the item range.
+#[derive(Clone, Copy)]
+#[repr(C)]
+pub struct AdamPush {
+    /// Parameters in this dispatch; invocation `i` updates parameter `first + i`.
+    pub n: u32,
+    pub first: u32,
+    pub lr: f32,
+    pub beta1: f32,
+    pub beta2: f32,
+    pub eps: f32,
+    pub bias_correction1: f32,
+    pub bias_correction2: f32,
+}
+
+/// Push constants of the per-item entry points without extra scalars (render, queries).
+#[derive(Clone, Copy)]
+#[repr(C)]
+pub struct RangePush {
+    /// Items in this dispatch; invocation `i` handles item `first + i`.
+    pub n: u32,
+    pub first: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+}
+
+/// A [`ModelGradSink`] over the five fixed-point gradient buffers (one storage buffer per
+/// [`Group`]), each contribution converted with [`fixed::to_fixed`] and added with a 64-bit
+/// integer atomic: the sums equal the CPU's `FixedModelSink` bit for bit in any order.
+/// Zero contributions are skipped (adding 0 changes nothing); indices past the end are dropped.
+pub struct AtomicModelSink<'a> {
+    pub geometry_grid: &'a mut [i64],
+    pub appearance_grid: &'a mut [i64],
+    pub geometry_mlp: &'a mut [i64],
+    pub appearance_mlp: &'a mut [i64],
+    pub beta: &'a mut [i64],
+}
+
+#[inline(always)]
+fn atomic_add_i64(acc: &mut [i64], i: usize, q: i64) {
+    if i < acc.len() {
+        unsafe {
+            atomic_i_add::<i64, { Scope::QueueFamily as u32 }, { Semantics::NONE.bits() }>(
+                &mut acc[i],
+                q,
+            );
+        }
+    }
+}
+
+impl ModelGradSink for AtomicModelSink<'_> {
+    #[inline(always)]
+    fn add(&mut self, group: Group, i: usize, g: f32) {
+        let q = fixed::to_fixed(g);
+        if q == 0 {
+            return;
+        }
+        match group {
+            Group::GeometryGrid => atomic_add_i64(self.geometry_grid, i, q),
+            Group::AppearanceGrid => atomic_add_i64(self.appearance_grid, i, q),
+            Group::GeometryMlp => atomic_add_i64(self.geometry_mlp, i, q),
+            Group::AppearanceMlp => atomic_add_i64(self.appearance_mlp, i, q),
+            Group::Beta => atomic_add_i64(self.beta, i, q),
+        }
+    }
+}
+
+/// `v[k]`, or 0 past the end (no closures here: rust-gpu cannot load through a captured
+/// pointer).
+#[inline(always)]
+fn float_at(v: &[f32], k: usize) -> f32 {
+    if k < v.len() {
+        v[k]
+    } else {
+        0.0
+    }
+}
+
+#[inline(always)]
+fn read_ray(rays: &[f32], i: usize) -> Ray {
+    let b = i * RAY_FLOATS;
+    Ray {
+        origin: [
+            float_at(rays, b),
+            float_at(rays, b + 1),
+            float_at(rays, b + 2),
+        ],
+        dir: [
+            float_at(rays, b + 3),
+            float_at(rays, b + 4),
+            float_at(rays, b + 5),
+        ],
+        target: [
+            float_at(rays, b + 6),
+            float_at(rays, b + 7),
+            float_at(rays, b + 8),
+        ],
+        target_depth: float_at(rays, b + 9),
+    }
+}
+
+#[inline(always)]
+fn write_result(out: &mut [f32], i: usize, color: [f32; 3], depth: f32, opacity: f32, loss: f32) {
+    let b = i * RESULT_FLOATS;
+    if b + RESULT_FLOATS <= out.len() {
+        out[b] = color[0];
+        out[b + 1] = color[1];
+        out[b + 2] = color[2];
+        out[b + 3] = depth;
+        out[b + 4] = opacity;
+        out[b + 5] = loss;
+    }
+}
+
+#[inline(always)]
+fn first_or_zero(v: &[f32]) -> f32 {
+    float_at(v, 0)
+}
+
+/// One training ray per invocation: `ray_train` (forward with jitter, loss, backward) with
+/// the gradients added into the five fixed-point buffers by [`AtomicModelSink`].
+///
+/// - binding 0 `model`: the [`model::ModelLayout`] as words ([`words::model_layout_from_words`]);
+/// - bindings 1..=5: parameters of the groups in [`Group::ALL`] order (beta: one float);
+/// - bindings 6..=10: the groups' `i64` gradients (zeroed by the host before the step);
+/// - binding 11 `rays`: [`RAY_FLOATS`] floats per ray;
+/// - binding 12 `results`: [`RESULT_FLOATS`] floats per ray.
+#[spirv(compute(threads(64)))]
+#[allow(clippy::too_many_arguments)]
+pub fn train_ray_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &TrainPush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_geometry_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] g_geometry_grid: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] g_appearance_grid: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] g_geometry_mlp: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] g_appearance_mlp: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] g_beta: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] results: &mut [f32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let i = (pc.first + id.x) as usize;
+    let layout = words::model_layout_from_words(model_words, 0);
+    let params = Params {
+        geometry_grid: p_geometry_grid,
+        appearance_grid: p_appearance_grid,
+        geometry_mlp: p_geometry_mlp,
+        appearance_mlp: p_appearance_mlp,
+        beta: first_or_zero(p_beta),
+    };
+    let mut sink = AtomicModelSink {
+        geometry_grid: g_geometry_grid,
+        appearance_grid: g_appearance_grid,
+        geometry_mlp: g_geometry_mlp,
+        appearance_mlp: g_appearance_mlp,
+        beta: g_beta,
+    };
+    let loss = LossConfig {
+        lambda_color: pc.lambda_color,
+        lambda_depth: pc.lambda_depth,
+        ray_scale: pc.ray_scale,
+        color_to_geometry: pc.color_to_geometry != 0,
+        seed: pc.seed,
+    };
+    let ray = read_ray(rays, i);
+    let mut cache = RayCache::new();
+    let mut scratch = SampleScratch::new();
+    let r = model::ray_train(
+        &layout,
+        &params,
+        &ray,
+        i as u32,
+        &loss,
+        &mut cache,
+        &mut scratch,
+        &mut sink,
+    );
+    write_result(results, i, r.color, r.depth, r.opacity, r.loss);
+}
+
+/// One rendering ray per invocation: `ray_forward` without jitter (bin centres), as the CPU
+/// backends' `render`. Bindings 0..=5 as [`train_ray_cs`]; binding 6 `rays`, binding 7
+/// `results` (loss 0).
+#[spirv(compute(threads(64)))]
+#[allow(clippy::too_many_arguments)]
+pub fn render_ray_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &RangePush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_geometry_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] results: &mut [f32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let i = (pc.first + id.x) as usize;
+    let layout = words::model_layout_from_words(model_words, 0);
+    let params = Params {
+        geometry_grid: p_geometry_grid,
+        appearance_grid: p_appearance_grid,
+        geometry_mlp: p_geometry_mlp,
+        appearance_mlp: p_appearance_mlp,
+        beta: first_or_zero(p_beta),
+    };
+    let ray = read_ray(rays, i);
+    let mut cache = RayCache::new();
+    let mut scratch = SampleScratch::new();
+    model::ray_forward(
+        &layout,
+        &params,
+        &ray,
+        i as u32,
+        0,
+        false,
+        &mut cache,
+        &mut scratch,
+    );
+    write_result(
+        results,
+        i,
+        cache.out.color,
+        cache.out.depth,
+        cache.out.opacity,
+        0.0,
+    );
+}
+
+/// Signed distance at points: `out[i] = sdf_at(points[i])`. Bindings 0..=5 as
+/// [`train_ray_cs`]; binding 6 `points` (3 floats each), binding 7 `out` (1 float each).
+#[spirv(compute(threads(64)))]
+#[allow(clippy::too_many_arguments)]
+pub fn sdf_query_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &RangePush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_geometry_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] points: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] out: &mut [f32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let i = (pc.first + id.x) as usize;
+    if (i + 1) * 3 > points.len() || i >= out.len() {
+        return;
+    }
+    let layout = words::model_layout_from_words(model_words, 0);
+    let params = Params {
+        geometry_grid: p_geometry_grid,
+        appearance_grid: p_appearance_grid,
+        geometry_mlp: p_geometry_mlp,
+        appearance_mlp: p_appearance_mlp,
+        beta: first_or_zero(p_beta),
+    };
+    let p = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
+    let mut scratch = SampleScratch::new();
+    out[i] = model::sdf_at(&layout, &params, p, &mut scratch);
+}
+
+/// Colour at points: `out[3i..3i+3] = color_at(points[i])`. Bindings as [`sdf_query_cs`]
+/// (`out`: 3 floats each).
+#[spirv(compute(threads(64)))]
+#[allow(clippy::too_many_arguments)]
+pub fn color_query_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &RangePush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_geometry_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] points: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] out: &mut [f32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let i = (pc.first + id.x) as usize;
+    if (i + 1) * 3 > points.len() || (i + 1) * 3 > out.len() {
+        return;
+    }
+    let layout = words::model_layout_from_words(model_words, 0);
+    let params = Params {
+        geometry_grid: p_geometry_grid,
+        appearance_grid: p_appearance_grid,
+        geometry_mlp: p_geometry_mlp,
+        appearance_mlp: p_appearance_mlp,
+        beta: first_or_zero(p_beta),
+    };
+    let p = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
+    let mut scratch = SampleScratch::new();
+    let c = model::color_at(&layout, &params, p, &mut scratch);
+    out[3 * i] = c[0];
+    out[3 * i + 1] = c[1];
+    out[3 * i + 2] = c[2];
+}
+
+/// Adam on one parameter per invocation (`adam::adam_update` with the gradient converted by
+/// `fixed::from_fixed`), the scalars of the step as push constants.
+///
+/// - binding 0 `params`, binding 1 `m`, binding 2 `v` (f32), binding 3 `grad` (i64).
+#[spirv(compute(threads(64)))]
+pub fn adam_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &AdamPush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] params: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] m: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] v: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad: &[i64],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let i = (pc.first + id.x) as usize;
+    if i >= params.len() || i >= m.len() || i >= v.len() || i >= grad.len() {
+        return;
+    }
+    let s = AdamStep {
+        lr: pc.lr,
+        beta1: pc.beta1,
+        beta2: pc.beta2,
+        eps: pc.eps,
+        bias_correction1: pc.bias_correction1,
+        bias_correction2: pc.bias_correction2,
+    };
+    let mut p = params[i];
+    let mut mi = m[i];
+    let mut vi = v[i];
+    adam::adam_update(&s, &mut p, &mut mi, &mut vi, fixed::from_fixed(grad[i]));
+    params[i] = p;
+    m[i] = mi;
+    v[i] = vi;
 }

@@ -12,10 +12,15 @@
 //! | [`Intrinsics`] | [`INTRINSICS`] = 6 | width, height, fx, fy, cx, cy |
 //! | [`GridLayout`] | [`GRID_LAYOUT`] = 98 | kind, levels, channels, param_count, aabb (6), then per level (8): res (3), offset, plane_offsets (3), line_offsets (3), count |
 //! | [`MlpLayout`] | [`MLP_LAYOUT`] = 15 | n_in, hidden, hidden_layers, n_out, param_count, weight_offsets (5), bias_offsets (5) |
+//! | [`GridConfig`] | [`GRID_CONFIG`] = 11 | kind, levels, channels, cell_sizes (8) |
+//! | [`ModelConfig`] | [`MODEL_CONFIG`] = 36 | aabb (6), geometry grid config (11), appearance grid config (11), hidden, hidden_layers, dual_path, render_mode, samples, beta_init, grid_init_std, sdf_bias_init |
+//! | [`ModelLayout`] | [`MODEL_LAYOUT`] = 262 | config, geometry grid layout, appearance grid layout, geometry MLP layout, appearance MLP layout |
 
 use himap_core::camera::{Intrinsics, Pose};
-use himap_core::grid::{GridKind, GridLayout, LevelLayout, MAX_LEVELS};
+use himap_core::grid::{GridConfig, GridKind, GridLayout, LevelLayout, MAX_LEVELS};
 use himap_core::mlp::{MlpLayout, MAX_HIDDEN_LAYERS};
+use himap_core::model::{ModelConfig, ModelLayout};
+use himap_core::render::RenderMode;
 use himap_core::Aabb;
 
 /// Words of an [`Aabb`].
@@ -30,6 +35,13 @@ pub const LEVEL_LAYOUT: usize = 11;
 pub const GRID_LAYOUT: usize = 4 + AABB + MAX_LEVELS * LEVEL_LAYOUT;
 /// Words of an [`MlpLayout`].
 pub const MLP_LAYOUT: usize = 5 + 2 * (MAX_HIDDEN_LAYERS + 1);
+
+/// Words of a [`GridConfig`].
+pub const GRID_CONFIG: usize = 3 + MAX_LEVELS;
+/// Words of a [`ModelConfig`].
+pub const MODEL_CONFIG: usize = AABB + 2 * GRID_CONFIG + 8;
+/// Words of a [`ModelLayout`].
+pub const MODEL_LAYOUT: usize = MODEL_CONFIG + 2 * GRID_LAYOUT + 2 * MLP_LAYOUT;
 
 /// Word `i`, or 0 past the end.
 #[inline(always)]
@@ -126,11 +138,7 @@ fn put_u32x3(w: &mut [u32], at: usize, v: [u32; 3]) {
 }
 
 pub fn grid_layout_from_words(w: &[u32], at: usize) -> GridLayout {
-    let kind = if word(w, at) == GridKind::Dense as u32 {
-        GridKind::Dense
-    } else {
-        GridKind::Factorized
-    };
+    let kind = grid_kind(word(w, at));
     let mut level = [LevelLayout {
         res: [0; 3],
         offset: 0,
@@ -211,4 +219,104 @@ pub fn mlp_layout_to_words(m: &MlpLayout, w: &mut [u32], at: usize) {
         put(w, at + 6 + MAX_HIDDEN_LAYERS + k, m.bias_offsets[k]);
         k += 1;
     }
+}
+
+fn grid_kind(w: u32) -> GridKind {
+    if w == GridKind::Dense as u32 {
+        GridKind::Dense
+    } else {
+        GridKind::Factorized
+    }
+}
+
+fn render_mode(w: u32) -> RenderMode {
+    if w == RenderMode::SdfDirect as u32 {
+        RenderMode::SdfDirect
+    } else if w == RenderMode::Occupancy as u32 {
+        RenderMode::Occupancy
+    } else {
+        RenderMode::SdfDensity
+    }
+}
+
+pub fn grid_config_from_words(w: &[u32], at: usize) -> GridConfig {
+    let mut cell_sizes = [0.0f32; MAX_LEVELS];
+    let mut l = 0;
+    while l < MAX_LEVELS {
+        cell_sizes[l] = fword(w, at + 3 + l);
+        l += 1;
+    }
+    GridConfig {
+        kind: grid_kind(word(w, at)),
+        levels: word(w, at + 1),
+        channels: word(w, at + 2),
+        cell_sizes,
+    }
+}
+
+pub fn grid_config_to_words(c: &GridConfig, w: &mut [u32], at: usize) {
+    put(w, at, c.kind as u32);
+    put(w, at + 1, c.levels);
+    put(w, at + 2, c.channels);
+    let mut l = 0;
+    while l < MAX_LEVELS {
+        put(w, at + 3 + l, c.cell_sizes[l].to_bits());
+        l += 1;
+    }
+}
+
+pub fn model_config_from_words(w: &[u32], at: usize) -> ModelConfig {
+    let b = at + AABB + 2 * GRID_CONFIG;
+    ModelConfig {
+        aabb: aabb_from_words(w, at),
+        geometry_grid: grid_config_from_words(w, at + AABB),
+        appearance_grid: grid_config_from_words(w, at + AABB + GRID_CONFIG),
+        hidden: word(w, b),
+        hidden_layers: word(w, b + 1),
+        dual_path: word(w, b + 2) != 0,
+        render_mode: render_mode(word(w, b + 3)),
+        samples: word(w, b + 4),
+        beta_init: fword(w, b + 5),
+        grid_init_std: fword(w, b + 6),
+        sdf_bias_init: fword(w, b + 7),
+    }
+}
+
+pub fn model_config_to_words(c: &ModelConfig, w: &mut [u32], at: usize) {
+    aabb_to_words(&c.aabb, w, at);
+    grid_config_to_words(&c.geometry_grid, w, at + AABB);
+    grid_config_to_words(&c.appearance_grid, w, at + AABB + GRID_CONFIG);
+    let b = at + AABB + 2 * GRID_CONFIG;
+    put(w, b, c.hidden);
+    put(w, b + 1, c.hidden_layers);
+    put(w, b + 2, c.dual_path as u32);
+    put(w, b + 3, c.render_mode as u32);
+    put(w, b + 4, c.samples);
+    put(w, b + 5, c.beta_init.to_bits());
+    put(w, b + 6, c.grid_init_std.to_bits());
+    put(w, b + 7, c.sdf_bias_init.to_bits());
+}
+
+/// Decodes a [`ModelLayout`] without re-validating it (the host built it with
+/// `ModelLayout::new`).
+pub fn model_layout_from_words(w: &[u32], at: usize) -> ModelLayout {
+    let g = at + MODEL_CONFIG;
+    let m = g + 2 * GRID_LAYOUT;
+    ModelLayout {
+        config: model_config_from_words(w, at),
+        geometry_grid: grid_layout_from_words(w, g),
+        appearance_grid: grid_layout_from_words(w, g + GRID_LAYOUT),
+        geometry_mlp: mlp_layout_from_words(w, m),
+        appearance_mlp: mlp_layout_from_words(w, m + MLP_LAYOUT),
+    }
+}
+
+pub fn model_layout_to_words(l: &ModelLayout, w: &mut [u32], at: usize) {
+    let g = at + MODEL_CONFIG;
+    let m = g + 2 * GRID_LAYOUT;
+    model_config_to_words(&l.config, w, at);
+    grid_layout_to_words(&l.geometry_grid, w, g);
+    grid_layout_to_words(&l.appearance_grid, w, g + GRID_LAYOUT);
+    mlp_layout_to_words(&l.geometry_mlp, w, m);
+    mlp_layout_to_words(&l.appearance_mlp, w, m + MLP_LAYOUT);
 }

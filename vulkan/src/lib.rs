@@ -1,9 +1,27 @@
-//! Vulkan backend for himap (under construction: for now the compiled shader module and its
-//! metadata).
+//! Vulkan backend for himap: [`VulkanBackend`] implements `himap_core::step::Backend` with
+//! rust-gpu compute shaders that give the CPU core's bits.
+//!
+//! - [`list_devices`] / [`describe_devices`]: the devices, their limits and features
+//!   (`himap devices`);
+//! - [`VulkanBackend::new`]: opens the device chosen by [`device`]'s rules (discrete, then
+//!   integrated, then software; `HIMAP_VULKAN_DEVICE` by index or name substring);
+//! - every `unsafe` ash call lives in the private `raw` module, each with a `SAFETY` comment;
+//! - errors are [`VulkanError`] values with a remedy in the message; nothing panics.
 //!
 //! `build.rs` compiles `../shaders` with rust-gpu to one SPIR-V 1.5 module for Vulkan 1.2,
 //! decorates every float operation `NoContraction` and validates it. Pipelines built from it
 //! need the device features `shaderInt64`, `shaderBufferInt64Atomics` and `vulkanMemoryModel`.
+
+#![deny(unsafe_code)]
+
+mod backend;
+pub mod device;
+mod error;
+mod raw;
+
+pub use backend::VulkanBackend;
+pub use device::{describe_devices, list_devices, DeviceInfo, DeviceKind, DEVICE_ENV};
+pub use error::VulkanError;
 
 /// The post-processed SPIR-V module with every entry point (little-endian words; use
 /// `ash::util::read_spv` to get aligned `u32`s).
@@ -20,6 +38,11 @@ pub mod entry {
     pub const FIXED_ACCUMULATE: &str = "fixed_accumulate_cs";
     pub const MLP_FORWARD: &str = "mlp_forward_cs";
     pub const GRID_FORWARD: &str = "grid_forward_cs";
+    pub const TRAIN_RAY: &str = "train_ray_cs";
+    pub const RENDER_RAY: &str = "render_ray_cs";
+    pub const ADAM: &str = "adam_cs";
+    pub const SDF_QUERY: &str = "sdf_query_cs";
+    pub const COLOR_QUERY: &str = "color_query_cs";
 }
 
 /// Workgroup size (x) of every entry point.
@@ -73,6 +96,11 @@ mod tests {
             entry::FIXED_ACCUMULATE,
             entry::MLP_FORWARD,
             entry::GRID_FORWARD,
+            entry::TRAIN_RAY,
+            entry::RENDER_RAY,
+            entry::ADAM,
+            entry::SDF_QUERY,
+            entry::COLOR_QUERY,
         ] {
             assert!(listed.contains(want), "{want} missing from {listed:?}");
             assert!(ENTRY_POINTS.contains(&want));
@@ -215,5 +243,21 @@ mod tests {
         assert_eq!(words::intrinsics_from_words(&w, 18), k);
         assert_eq!(w[0], (-1.0f32).to_bits());
         assert_eq!(w[18], 1200);
+        // The whole model layout (what train/render/query shaders decode), every render mode.
+        for mode in [
+            himap_core::render::RenderMode::SdfDensity,
+            himap_core::render::RenderMode::SdfDirect,
+            himap_core::render::RenderMode::Occupancy,
+        ] {
+            let mut cfg = himap_core::model::ModelConfig::paper(aabb);
+            cfg.render_mode = mode;
+            cfg.dual_path = mode != himap_core::render::RenderMode::SdfDirect;
+            cfg.appearance_grid = cfg.appearance_grid.with_kind(GridKind::Dense);
+            cfg.appearance_grid.cell_sizes[1] = 0.5;
+            let l = himap_core::model::ModelLayout::new(&cfg).unwrap();
+            let mut w = vec![0u32; words::MODEL_LAYOUT];
+            words::model_layout_to_words(&l, &mut w, 0);
+            assert_eq!(words::model_layout_from_words(&w, 0), l);
+        }
     }
 }

@@ -1,0 +1,682 @@
+//! [`VulkanBackend`]: the core's [`Backend`] on a Vulkan device, bit-identical to
+//! `himap_core::step::CpuBackend`.
+//!
+//! Parameters, Adam moments and fixed-point gradients of the five groups live in persistent
+//! device buffers (uploaded once at construction, read back only on request). A training step
+//! is one submission: zero the gradients, `train_ray_cs` (one invocation per ray, gradients
+//! added with i64 atomics), `adam_cs` per group. Rays and per-ray results travel through
+//! host-visible buffers; the host sums the loss in ray order, as the CPU does.
+//!
+//! Tensor size: each group is one storage-buffer binding, so a group may hold at most
+//! `maxStorageBufferRange` bytes (128 MiB on lavapipe, 32 Mi floats); larger groups are a
+//! [`VulkanError::TensorTooLarge`] at construction (splitting across bindings is not
+//! implemented yet).
+
+use crate::device;
+use crate::error::VulkanError;
+use crate::raw::{Buffer, Gpu, Memory, Pipeline, ShaderModule};
+use crate::{entry, words, WORKGROUP_SIZE};
+use himap_core::adam::{AdamConfig, AdamStep};
+use himap_core::error::check_len;
+use himap_core::mapping::PixelResult;
+use himap_core::model::{Group, LossConfig, ModelLayout, Ray, RayResult, NUM_GROUPS};
+use himap_core::step::{summarize, Backend, ImageStore, MapBatch, StepStats};
+
+/// Floats per ray in the rays buffer (see `train_ray_cs`).
+const RAY_FLOATS: usize = 10;
+/// Floats per result.
+const RESULT_FLOATS: usize = 6;
+
+struct Pipelines {
+    train: Pipeline,
+    render: Pipeline,
+    adam: Pipeline,
+    sdf: Pipeline,
+    color: Pipeline,
+}
+
+/// Per-group device state.
+struct GroupBuffers {
+    params: Buffer,
+    m: Buffer,
+    v: Buffer,
+    grad: Buffer,
+    len: usize,
+}
+
+/// The Vulkan backend. Construct with [`VulkanBackend::new`].
+pub struct VulkanBackend {
+    layout: ModelLayout,
+    name: String,
+    adam: [AdamConfig; NUM_GROUPS],
+    t: u32,
+    max_groups: u32,
+    max_binding: u64,
+    model_words: Buffer,
+    groups: [GroupBuffers; NUM_GROUPS],
+    /// Per-batch inputs and outputs (host-visible, grown on demand).
+    input: Option<Buffer>,
+    output: Option<Buffer>,
+    /// Staging for device-local buffers that are not host-visible.
+    staging: Option<Buffer>,
+    pipelines: Pipelines,
+    _module: ShaderModule,
+    gpu: Gpu,
+}
+
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+fn u32_bytes(v: &[u32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Makes sure `slot` holds a host-visible buffer of at least `bytes`.
+fn ensure<'b>(
+    gpu: &Gpu,
+    slot: &'b mut Option<Buffer>,
+    bytes: u64,
+    what: &str,
+) -> Result<&'b mut Buffer, VulkanError> {
+    let grow = match slot {
+        Some(b) => b.size() < bytes,
+        None => true,
+    };
+    if grow {
+        *slot = None;
+        *slot = Some(Buffer::new(
+            gpu.device(),
+            bytes.next_power_of_two(),
+            Memory::Host,
+            what,
+        )?);
+    }
+    slot.as_mut()
+        .ok_or(VulkanError::Unsupported("buffer allocation"))
+}
+
+/// Writes `data` at the start of `dst` (through `staging` when `dst` is not mapped).
+fn upload(
+    gpu: &mut Gpu,
+    staging: &mut Option<Buffer>,
+    dst: &mut Buffer,
+    data: &[u8],
+) -> Result<(), VulkanError> {
+    if dst.write_mapped(0, data) {
+        return Ok(());
+    }
+    let st = ensure(gpu, staging, data.len() as u64, "a staging buffer")?;
+    st.write_mapped(0, data);
+    let (st, dst): (&Buffer, &Buffer) = (st, dst);
+    let n = data.len() as u64;
+    gpu.submit(|r| {
+        r.copy(st, 0, dst, 0, n);
+        Ok(())
+    })
+}
+
+/// Reads `out.len()` bytes from the start of `src`.
+fn download(
+    gpu: &mut Gpu,
+    staging: &mut Option<Buffer>,
+    src: &Buffer,
+    out: &mut [u8],
+) -> Result<(), VulkanError> {
+    if src.read_mapped(0, out) {
+        return Ok(());
+    }
+    let n = out.len() as u64;
+    let st = ensure(gpu, staging, n, "a staging buffer")?;
+    {
+        let st: &Buffer = st;
+        gpu.submit(|r| {
+            r.copy(src, 0, st, 0, n);
+            Ok(())
+        })?;
+    }
+    st.read_mapped(0, out);
+    Ok(())
+}
+
+fn push_bytes(words: [u32; 8]) -> [u8; 32] {
+    let mut b = [0u8; 32];
+    for (i, w) in words.iter().enumerate() {
+        b[4 * i..4 * i + 4].copy_from_slice(&w.to_le_bytes());
+    }
+    b
+}
+
+/// Items per dispatch and the dispatches covering `n` items: `(first, count, groups)`.
+fn chunks(n: usize, max_groups: u32) -> Vec<(u32, u32, u32)> {
+    let per = max_groups as usize * WORKGROUP_SIZE as usize;
+    let mut out = Vec::new();
+    let mut first = 0;
+    while first < n {
+        let count = (n - first).min(per);
+        out.push((
+            first as u32,
+            count as u32,
+            count.div_ceil(WORKGROUP_SIZE as usize) as u32,
+        ));
+        first += count;
+    }
+    out
+}
+
+impl VulkanBackend {
+    /// Opens the selected device (see [`crate::list_devices`]; `HIMAP_VULKAN_DEVICE`), builds
+    /// the pipelines and uploads `params` (one slice per group, [`Group::ALL`] order); Adam
+    /// moments start at zero.
+    pub fn new(
+        layout: ModelLayout,
+        params: [&[f32]; NUM_GROUPS],
+        adam: [AdamConfig; NUM_GROUPS],
+    ) -> Result<Self, VulkanError> {
+        let lens = layout.group_lens();
+        for (g, p) in params.iter().enumerate() {
+            check_len(Group::ALL[g].name(), p.len(), lens[g])?;
+        }
+        let device = device::open()?;
+        let info = device.info.clone();
+        let max_binding =
+            (info.max_storage_buffer_range as u64).min(info.max_memory_allocation_size);
+        let limit_name =
+            if (info.max_storage_buffer_range as u64) <= info.max_memory_allocation_size {
+                "maxStorageBufferRange"
+            } else {
+                "maxMemoryAllocationSize"
+            };
+        for (g, &len) in Group::ALL.iter().zip(lens.iter()) {
+            // The i64 gradient is the largest buffer of a group.
+            let bytes = len as u64 * 8;
+            if bytes > max_binding {
+                return Err(VulkanError::TensorTooLarge {
+                    what: format!("the fixed-point gradient of {}", g.name()),
+                    bytes,
+                    limit: max_binding,
+                    limit_name,
+                });
+            }
+        }
+        let mut gpu = Gpu::new(&device)?;
+        let module = ShaderModule::new(&device, &crate::shader_words())?;
+        let pipelines = Pipelines {
+            train: Pipeline::new(&device, &module, entry::TRAIN_RAY, 13, 32)?,
+            render: Pipeline::new(&device, &module, entry::RENDER_RAY, 8, 16)?,
+            adam: Pipeline::new(&device, &module, entry::ADAM, 4, 32)?,
+            sdf: Pipeline::new(&device, &module, entry::SDF_QUERY, 8, 16)?,
+            color: Pipeline::new(&device, &module, entry::COLOR_QUERY, 8, 16)?,
+        };
+        let mut w = vec![0u32; words::MODEL_LAYOUT];
+        words::model_layout_to_words(&layout, &mut w, 0);
+        let mut staging = None;
+        let mut model_words = Buffer::new(
+            &device,
+            (w.len() * 4) as u64,
+            Memory::Device,
+            "the model layout",
+        )?;
+        upload(&mut gpu, &mut staging, &mut model_words, &u32_bytes(&w))?;
+        let mut make = |g: usize| -> Result<GroupBuffers, VulkanError> {
+            let n = lens[g] as u64;
+            let name = Group::ALL[g].name();
+            let mut p = Buffer::new(
+                &device,
+                n * 4,
+                Memory::Device,
+                &format!("{name} parameters"),
+            )?;
+            upload(&mut gpu, &mut staging, &mut p, &f32_bytes(params[g]))?;
+            Ok(GroupBuffers {
+                params: p,
+                m: Buffer::new(&device, n * 4, Memory::Device, &format!("{name} Adam m"))?,
+                v: Buffer::new(&device, n * 4, Memory::Device, &format!("{name} Adam v"))?,
+                grad: Buffer::new(&device, n * 8, Memory::Device, &format!("{name} gradient"))?,
+                len: lens[g],
+            })
+        };
+        let groups = [make(0)?, make(1)?, make(2)?, make(3)?, make(4)?];
+        {
+            let g = &groups;
+            gpu.submit(|r| {
+                for b in g.iter() {
+                    r.zero(&b.m);
+                    r.zero(&b.v);
+                    r.zero(&b.grad);
+                }
+                Ok(())
+            })?;
+        }
+        Ok(Self {
+            layout,
+            name: format!("vulkan: {}", info.name),
+            adam,
+            t: 0,
+            max_groups: info.max_workgroup_count_x.clamp(1, 65535),
+            max_binding,
+            model_words,
+            groups,
+            input: None,
+            output: None,
+            staging,
+            pipelines,
+            _module: module,
+            gpu,
+        })
+    }
+
+    /// Adam steps taken so far.
+    pub fn steps(&self) -> u32 {
+        self.t
+    }
+
+    /// Copies a group's Adam moments out.
+    pub fn read_adam(
+        &mut self,
+        group: Group,
+        m: &mut [f32],
+        v: &mut [f32],
+    ) -> Result<(), VulkanError> {
+        let g = &self.groups[group as usize];
+        check_len(group.name(), m.len(), g.len)?;
+        check_len(group.name(), v.len(), g.len)?;
+        let mut bytes = vec![0u8; g.len * 4];
+        download(&mut self.gpu, &mut self.staging, &g.m, &mut bytes)?;
+        for (x, b) in m.iter_mut().zip(bytes.as_chunks::<4>().0) {
+            *x = f32::from_le_bytes(*b);
+        }
+        download(&mut self.gpu, &mut self.staging, &g.v, &mut bytes)?;
+        for (x, b) in v.iter_mut().zip(bytes.as_chunks::<4>().0) {
+            *x = f32::from_le_bytes(*b);
+        }
+        Ok(())
+    }
+
+    /// Signed distances at world points (`sdf_at`, as the CPU backends' `sdf`).
+    pub fn sdf(&mut self, points: &[[f32; 3]], out: &mut [f32]) -> Result<(), VulkanError> {
+        check_len("sdf output", out.len(), points.len())?;
+        let mut res = vec![0.0f32; points.len()];
+        self.query(false, points, &mut res)?;
+        out.copy_from_slice(&res);
+        Ok(())
+    }
+
+    /// Colours at world points (`color_at`).
+    pub fn color(&mut self, points: &[[f32; 3]], out: &mut [[f32; 3]]) -> Result<(), VulkanError> {
+        check_len("color output", out.len(), points.len())?;
+        let mut res = vec![0.0f32; points.len() * 3];
+        self.query(true, points, &mut res)?;
+        for (o, c) in out.iter_mut().zip(res.as_chunks::<3>().0) {
+            *o = [c[0], c[1], c[2]];
+        }
+        Ok(())
+    }
+
+    fn check_binding(&self, what: &str, bytes: u64) -> Result<(), VulkanError> {
+        if bytes > self.max_binding {
+            return Err(VulkanError::TensorTooLarge {
+                what: what.to_string(),
+                bytes,
+                limit: self.max_binding,
+                limit_name: "maxStorageBufferRange",
+            });
+        }
+        Ok(())
+    }
+
+    fn query(
+        &mut self,
+        color: bool,
+        points: &[[f32; 3]],
+        out: &mut [f32],
+    ) -> Result<(), VulkanError> {
+        let n = points.len();
+        if n == 0 {
+            return Ok(());
+        }
+        let per = if color { 3 } else { 1 };
+        self.check_binding("the query points", n as u64 * 12)?;
+        self.check_binding("the query results", (n * per) as u64 * 4)?;
+        let flat: Vec<f32> = points.iter().flatten().copied().collect();
+        ensure(&self.gpu, &mut self.input, n as u64 * 12, "query points")?
+            .write_mapped(0, &f32_bytes(&flat));
+        ensure(
+            &self.gpu,
+            &mut self.output,
+            (n * per) as u64 * 4,
+            "query results",
+        )?;
+        let Self {
+            gpu,
+            groups,
+            model_words,
+            input,
+            output,
+            pipelines,
+            max_groups,
+            ..
+        } = self;
+        let (Some(input), Some(output)) = (input.as_ref(), output.as_ref()) else {
+            return Err(VulkanError::Unsupported("buffer allocation"));
+        };
+        let pipeline = if color {
+            &pipelines.color
+        } else {
+            &pipelines.sdf
+        };
+        gpu.submit(|r| {
+            let set = r.bind(
+                pipeline,
+                &[
+                    model_words,
+                    &groups[0].params,
+                    &groups[1].params,
+                    &groups[2].params,
+                    &groups[3].params,
+                    &groups[4].params,
+                    input,
+                    output,
+                ],
+            )?;
+            for (first, count, wg) in chunks(n, *max_groups) {
+                let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
+                r.dispatch(pipeline, &set, &p[..16], wg);
+            }
+            Ok(())
+        })?;
+        let mut bytes = vec![0u8; out.len() * 4];
+        output.read_mapped(0, &mut bytes);
+        for (x, b) in out.iter_mut().zip(bytes.as_chunks::<4>().0) {
+            *x = f32::from_le_bytes(*b);
+        }
+        Ok(())
+    }
+
+    /// Uploads rays and makes room for their results.
+    fn stage_rays(&mut self, rays: &[Ray]) -> Result<(), VulkanError> {
+        let n = rays.len();
+        self.check_binding("the rays of a batch", (n * RAY_FLOATS * 4) as u64)?;
+        let mut flat = Vec::with_capacity(n * RAY_FLOATS);
+        for r in rays {
+            flat.extend_from_slice(&r.origin);
+            flat.extend_from_slice(&r.dir);
+            flat.extend_from_slice(&r.target);
+            flat.push(r.target_depth);
+        }
+        ensure(
+            &self.gpu,
+            &mut self.input,
+            (n * RAY_FLOATS * 4) as u64,
+            "rays",
+        )?
+        .write_mapped(0, &f32_bytes(&flat));
+        ensure(
+            &self.gpu,
+            &mut self.output,
+            (n * RESULT_FLOATS * 4) as u64,
+            "ray results",
+        )?;
+        Ok(())
+    }
+
+    fn read_results(&self, results: &mut [RayResult]) {
+        let Some(out) = &self.output else { return };
+        let mut bytes = vec![0u8; results.len() * RESULT_FLOATS * 4];
+        out.read_mapped(0, &mut bytes);
+        let f: Vec<f32> = bytes
+            .as_chunks::<4>()
+            .0
+            .iter()
+            .map(|b| f32::from_le_bytes(*b))
+            .collect();
+        for (r, v) in results.iter_mut().zip(f.as_chunks::<RESULT_FLOATS>().0) {
+            *r = RayResult {
+                color: [v[0], v[1], v[2]],
+                depth: v[3],
+                opacity: v[4],
+                loss: v[5],
+            };
+        }
+    }
+}
+
+impl Backend for VulkanBackend {
+    type Error = VulkanError;
+
+    fn layout(&self) -> &ModelLayout {
+        &self.layout
+    }
+
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn train_step(
+        &mut self,
+        rays: &[Ray],
+        loss: &LossConfig,
+        results: &mut [RayResult],
+    ) -> Result<StepStats, VulkanError> {
+        check_len("results", results.len(), rays.len())?;
+        self.stage_rays(rays)?;
+        self.t += 1;
+        let steps: [AdamStep; NUM_GROUPS] =
+            core::array::from_fn(|g| AdamStep::new(&self.adam[g], self.t));
+        let n = rays.len();
+        let train_push = |first: u32, count: u32| {
+            push_bytes([
+                count,
+                first,
+                loss.seed,
+                loss.color_to_geometry as u32,
+                loss.lambda_color.to_bits(),
+                loss.lambda_depth.to_bits(),
+                loss.ray_scale.to_bits(),
+                0,
+            ])
+        };
+        let Self {
+            gpu,
+            groups,
+            model_words,
+            input,
+            output,
+            pipelines,
+            max_groups,
+            ..
+        } = self;
+        let (Some(input), Some(output)) = (input.as_ref(), output.as_ref()) else {
+            return Err(VulkanError::Unsupported("buffer allocation"));
+        };
+        let max_groups = *max_groups;
+        gpu.submit(|r| {
+            for g in groups.iter() {
+                r.zero(&g.grad);
+            }
+            r.barrier();
+            if n > 0 {
+                let set = r.bind(
+                    &pipelines.train,
+                    &[
+                        model_words,
+                        &groups[0].params,
+                        &groups[1].params,
+                        &groups[2].params,
+                        &groups[3].params,
+                        &groups[4].params,
+                        &groups[0].grad,
+                        &groups[1].grad,
+                        &groups[2].grad,
+                        &groups[3].grad,
+                        &groups[4].grad,
+                        input,
+                        output,
+                    ],
+                )?;
+                for (first, count, wg) in chunks(n, max_groups) {
+                    r.dispatch(&pipelines.train, &set, &train_push(first, count), wg);
+                }
+                r.barrier();
+            }
+            for (g, s) in groups.iter().zip(steps.iter()) {
+                let set = r.bind(&pipelines.adam, &[&g.params, &g.m, &g.v, &g.grad])?;
+                for (first, count, wg) in chunks(g.len, max_groups) {
+                    let p = push_bytes([
+                        count,
+                        first,
+                        s.lr.to_bits(),
+                        s.beta1.to_bits(),
+                        s.beta2.to_bits(),
+                        s.eps.to_bits(),
+                        s.bias_correction1.to_bits(),
+                        s.bias_correction2.to_bits(),
+                    ]);
+                    r.dispatch(&pipelines.adam, &set, &p, wg);
+                }
+            }
+            Ok(())
+        })?;
+        self.read_results(results);
+        Ok(summarize(results, self.t))
+    }
+
+    fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), VulkanError> {
+        check_len("results", results.len(), rays.len())?;
+        if rays.is_empty() {
+            return Ok(());
+        }
+        self.stage_rays(rays)?;
+        let n = rays.len();
+        let Self {
+            gpu,
+            groups,
+            model_words,
+            input,
+            output,
+            pipelines,
+            max_groups,
+            ..
+        } = self;
+        let (Some(input), Some(output)) = (input.as_ref(), output.as_ref()) else {
+            return Err(VulkanError::Unsupported("buffer allocation"));
+        };
+        let max_groups = *max_groups;
+        gpu.submit(|r| {
+            let set = r.bind(
+                &pipelines.render,
+                &[
+                    model_words,
+                    &groups[0].params,
+                    &groups[1].params,
+                    &groups[2].params,
+                    &groups[3].params,
+                    &groups[4].params,
+                    input,
+                    output,
+                ],
+            )?;
+            for (first, count, wg) in chunks(n, max_groups) {
+                let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
+                r.dispatch(&pipelines.render, &set, &p[..16], wg);
+            }
+            Ok(())
+        })?;
+        self.read_results(results);
+        Ok(())
+    }
+
+    fn read_params(&mut self, group: Group, out: &mut [f32]) -> Result<(), VulkanError> {
+        let g = &self.groups[group as usize];
+        check_len(group.name(), out.len(), g.len)?;
+        let mut bytes = vec![0u8; g.len * 4];
+        download(&mut self.gpu, &mut self.staging, &g.params, &mut bytes)?;
+        for (x, b) in out.iter_mut().zip(bytes.as_chunks::<4>().0) {
+            *x = f32::from_le_bytes(*b);
+        }
+        Ok(())
+    }
+
+    fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), VulkanError> {
+        let g = &self.groups[group as usize];
+        check_len(group.name(), out.len(), g.len)?;
+        let mut bytes = vec![0u8; g.len * 8];
+        download(&mut self.gpu, &mut self.staging, &g.grad, &mut bytes)?;
+        for (x, b) in out.iter_mut().zip(bytes.as_chunks::<8>().0) {
+            *x = i64::from_le_bytes(*b);
+        }
+        Ok(())
+    }
+
+    fn write_params(
+        &mut self,
+        group: Group,
+        data: &[f32],
+        reset_adam: bool,
+    ) -> Result<(), VulkanError> {
+        let g = &mut self.groups[group as usize];
+        check_len(group.name(), data.len(), g.len)?;
+        upload(
+            &mut self.gpu,
+            &mut self.staging,
+            &mut g.params,
+            &f32_bytes(data),
+        )?;
+        if reset_adam {
+            let (m, v): (&Buffer, &Buffer) = (&g.m, &g.v);
+            self.gpu.submit(|r| {
+                r.zero(m);
+                r.zero(v);
+                Ok(())
+            })?;
+        }
+        Ok(())
+    }
+
+    fn image_store(&self) -> ImageStore {
+        ImageStore::default()
+    }
+
+    fn upload_frame(&mut self, _slot: u32, _rgba: &[u32]) -> Result<(), VulkanError> {
+        Err(VulkanError::Unsupported("frame images (upload_frame)"))
+    }
+
+    fn map_step(
+        &mut self,
+        _batch: &MapBatch<'_>,
+        _results: &mut [PixelResult],
+    ) -> Result<StepStats, VulkanError> {
+        Err(VulkanError::Unsupported("the mapping step (map_step)"))
+    }
+
+    fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), VulkanError> {
+        if !(lr.is_finite() && lr >= 0.0) {
+            return Err(
+                himap_core::Error::InvalidConfig("learning rate must be finite and >= 0").into(),
+            );
+        }
+        self.adam[group as usize].lr = lr;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chunks_cover_every_item_once() {
+        assert!(chunks(0, 10).is_empty());
+        assert_eq!(chunks(1, 10), vec![(0, 1, 1)]);
+        assert_eq!(chunks(64 * 10, 10), vec![(0, 640, 10)]);
+        assert_eq!(chunks(641, 10), vec![(0, 640, 10), (640, 1, 1)]);
+        assert_eq!(chunks(130, 1), vec![(0, 64, 1), (64, 64, 1), (128, 2, 1)]);
+    }
+
+    #[test]
+    fn push_bytes_are_little_endian_words() {
+        let b = push_bytes([1, 0x0403_0201, 0, 0, 0, 0, 0, 1.0f32.to_bits()]);
+        assert_eq!(&b[..8], &[1, 0, 0, 0, 1, 2, 3, 4]);
+        assert_eq!(&b[28..], &1.0f32.to_le_bytes());
+    }
+}

@@ -1,0 +1,282 @@
+//! Device discovery and selection: discrete GPU first, then integrated, virtual, CPU (lavapipe),
+//! other; `HIMAP_VULKAN_DEVICE` picks one by index (as listed by [`list_devices`]) or by a
+//! case-insensitive name substring.
+
+use crate::error::VulkanError;
+use crate::raw::{self, Instance, PhysicalInfo};
+use ash::vk;
+use std::fmt::Write as _;
+use std::sync::Arc;
+
+/// Environment variable that picks a device by index or name substring.
+pub const DEVICE_ENV: &str = "HIMAP_VULKAN_DEVICE";
+
+/// Kind of a physical device.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum DeviceKind {
+    Discrete,
+    Integrated,
+    Virtual,
+    Cpu,
+    Other,
+}
+
+impl DeviceKind {
+    fn from_vk(t: vk::PhysicalDeviceType) -> Self {
+        match t {
+            vk::PhysicalDeviceType::DISCRETE_GPU => Self::Discrete,
+            vk::PhysicalDeviceType::INTEGRATED_GPU => Self::Integrated,
+            vk::PhysicalDeviceType::VIRTUAL_GPU => Self::Virtual,
+            vk::PhysicalDeviceType::CPU => Self::Cpu,
+            _ => Self::Other,
+        }
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Discrete => "discrete GPU",
+            Self::Integrated => "integrated GPU",
+            Self::Virtual => "virtual GPU",
+            Self::Cpu => "CPU (software)",
+            Self::Other => "other",
+        }
+    }
+}
+
+/// One Vulkan device as `himap devices` shows it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DeviceInfo {
+    /// Position in the loader's enumeration (what `HIMAP_VULKAN_DEVICE=<index>` selects).
+    pub index: usize,
+    pub name: String,
+    pub kind: DeviceKind,
+    /// `major.minor.patch`.
+    pub api_version: String,
+    /// Largest storage-buffer binding in bytes (the largest tensor one binding can hold).
+    pub max_storage_buffer_range: u64,
+    /// Largest single allocation in bytes.
+    pub max_memory_allocation_size: u64,
+    /// Size of the largest device-local heap in bytes.
+    pub device_local_bytes: u64,
+    pub shader_int64: bool,
+    pub shader_buffer_int64_atomics: bool,
+    pub vulkan_memory_model: bool,
+    /// Required features this device lacks (empty: the backend can use it).
+    pub missing: Vec<&'static str>,
+}
+
+impl DeviceInfo {
+    fn from_raw(index: usize, p: &PhysicalInfo) -> Self {
+        Self {
+            index,
+            name: p.name.clone(),
+            kind: DeviceKind::from_vk(p.device_type),
+            api_version: raw::version_string(p.api_version),
+            max_storage_buffer_range: p.max_storage_buffer_range as u64,
+            max_memory_allocation_size: p.max_memory_allocation_size,
+            device_local_bytes: p.device_local_bytes,
+            shader_int64: p.shader_int64,
+            shader_buffer_int64_atomics: p.shader_buffer_int64_atomics,
+            vulkan_memory_model: p.vulkan_memory_model,
+            missing: p.missing(),
+        }
+    }
+
+    /// Whether the backend can run on this device.
+    pub fn usable(&self) -> bool {
+        self.missing.is_empty()
+    }
+}
+
+/// Every Vulkan device the loader reports, in enumeration order.
+pub fn list_devices() -> Result<Vec<DeviceInfo>, VulkanError> {
+    let instance = Instance::new()?;
+    Ok(instance
+        .physical_devices()?
+        .iter()
+        .enumerate()
+        .map(|(i, p)| DeviceInfo::from_raw(i, p))
+        .collect())
+}
+
+/// The device list as text for `himap devices` (one block per device, the one the backend
+/// would choose marked), or the reason there is none.
+pub fn describe_devices() -> String {
+    let devices = match list_devices() {
+        Ok(d) => d,
+        Err(e) => return format!("no Vulkan: {e}\n"),
+    };
+    if devices.is_empty() {
+        return format!("no Vulkan: {}\n", VulkanError::NoDevice);
+    }
+    let wanted = std::env::var(DEVICE_ENV).ok();
+    let chosen = choose(&devices, wanted.as_deref());
+    let mut s = String::new();
+    for d in &devices {
+        let mark = match &chosen {
+            Ok(i) if *i == d.index => " (selected)",
+            _ => "",
+        };
+        let yn = |b: bool| if b { "yes" } else { "NO" };
+        let _ = writeln!(s, "[{}] {}{mark}", d.index, d.name);
+        let _ = writeln!(s, "    type: {}, Vulkan {}", d.kind.as_str(), d.api_version);
+        let _ = writeln!(
+            s,
+            "    maxStorageBufferRange: {} MiB, maxMemoryAllocationSize: {} MiB, device-local heap: {} MiB",
+            d.max_storage_buffer_range >> 20,
+            d.max_memory_allocation_size.min(u64::MAX >> 1) >> 20,
+            d.device_local_bytes >> 20
+        );
+        let _ = writeln!(
+            s,
+            "    shaderInt64: {}, shaderBufferInt64Atomics: {}, vulkanMemoryModel: {}",
+            yn(d.shader_int64),
+            yn(d.shader_buffer_int64_atomics),
+            yn(d.vulkan_memory_model)
+        );
+        if d.usable() {
+            let _ = writeln!(s, "    usable by himap: yes");
+        } else {
+            let _ = writeln!(
+                s,
+                "    usable by himap: no (missing {})",
+                d.missing.join(", ")
+            );
+        }
+    }
+    if let Err(e) = chosen {
+        let _ = writeln!(s, "no device selected: {e}");
+    }
+    s
+}
+
+fn rank(kind: DeviceKind) -> u32 {
+    match kind {
+        DeviceKind::Discrete => 0,
+        DeviceKind::Integrated => 1,
+        DeviceKind::Virtual => 2,
+        DeviceKind::Cpu => 3,
+        DeviceKind::Other => 4,
+    }
+}
+
+/// Index of the device to use: the one `wanted` names (index or name substring), else the
+/// best usable one by kind.
+pub(crate) fn choose(devices: &[DeviceInfo], wanted: Option<&str>) -> Result<usize, VulkanError> {
+    if devices.is_empty() {
+        return Err(VulkanError::NoDevice);
+    }
+    if let Some(w) = wanted.map(str::trim).filter(|w| !w.is_empty()) {
+        let hit = match w.parse::<usize>() {
+            Ok(i) => devices.iter().find(|d| d.index == i),
+            Err(_) => {
+                let lw = w.to_lowercase();
+                devices.iter().find(|d| d.name.to_lowercase().contains(&lw))
+            }
+        };
+        return match hit {
+            Some(d) if d.usable() => Ok(d.index),
+            Some(d) => Err(VulkanError::MissingFeature {
+                device: d.name.clone(),
+                missing: d.missing.clone(),
+            }),
+            None => Err(VulkanError::DeviceNotFound {
+                wanted: w.to_string(),
+                available: devices.iter().map(|d| d.name.clone()).collect(),
+            }),
+        };
+    }
+    devices
+        .iter()
+        .filter(|d| d.usable())
+        .min_by_key(|d| (rank(d.kind), d.index))
+        .map(|d| d.index)
+        .ok_or_else(|| VulkanError::NoSuitableDevice {
+            devices: devices
+                .iter()
+                .map(|d| format!("{} (missing {})", d.name, d.missing.join(", ")))
+                .collect(),
+        })
+}
+
+/// Opens the selected device (see the module documentation).
+pub(crate) fn open() -> Result<Arc<raw::Device>, VulkanError> {
+    let instance = Instance::new()?;
+    let physical = instance.physical_devices()?;
+    let infos: Vec<DeviceInfo> = physical
+        .iter()
+        .enumerate()
+        .map(|(i, p)| DeviceInfo::from_raw(i, p))
+        .collect();
+    let wanted = std::env::var(DEVICE_ENV).ok();
+    let i = choose(&infos, wanted.as_deref())?;
+    raw::Device::new(instance, physical[i].clone())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dev(index: usize, name: &str, kind: DeviceKind, usable: bool) -> DeviceInfo {
+        DeviceInfo {
+            index,
+            name: name.into(),
+            kind,
+            api_version: "1.3.0".into(),
+            max_storage_buffer_range: 1 << 27,
+            max_memory_allocation_size: 1 << 31,
+            device_local_bytes: 1 << 30,
+            shader_int64: usable,
+            shader_buffer_int64_atomics: true,
+            vulkan_memory_model: true,
+            missing: if usable { vec![] } else { vec!["shaderInt64"] },
+        }
+    }
+
+    #[test]
+    fn choose_prefers_discrete_then_integrated_then_cpu() {
+        let d = [
+            dev(0, "llvmpipe", DeviceKind::Cpu, true),
+            dev(1, "Intel UHD", DeviceKind::Integrated, true),
+            dev(2, "NVIDIA RTX", DeviceKind::Discrete, true),
+        ];
+        assert_eq!(choose(&d, None).unwrap(), 2);
+        assert_eq!(choose(&d[..2], None).unwrap(), 1);
+        assert_eq!(choose(&d[..1], None).unwrap(), 0);
+        // an unusable discrete GPU is skipped
+        let d2 = [
+            dev(0, "llvmpipe", DeviceKind::Cpu, true),
+            dev(1, "old", DeviceKind::Discrete, false),
+        ];
+        assert_eq!(choose(&d2, None).unwrap(), 0);
+        assert!(matches!(
+            choose(&d2[1..], None),
+            Err(VulkanError::NoSuitableDevice { .. })
+        ));
+        assert_eq!(choose(&[], None), Err(VulkanError::NoDevice));
+    }
+
+    #[test]
+    fn choose_by_env_index_or_name() {
+        let d = [
+            dev(0, "llvmpipe (LLVM 15)", DeviceKind::Cpu, true),
+            dev(1, "NVIDIA RTX", DeviceKind::Discrete, true),
+            dev(2, "old", DeviceKind::Discrete, false),
+        ];
+        assert_eq!(choose(&d, Some("0")).unwrap(), 0);
+        assert_eq!(choose(&d, Some("LLVMpipe")).unwrap(), 0);
+        assert_eq!(choose(&d, Some(" nvidia ")).unwrap(), 1);
+        assert_eq!(choose(&d, Some("")).unwrap(), 1);
+        assert!(matches!(
+            choose(&d, Some("7")),
+            Err(VulkanError::DeviceNotFound { .. })
+        ));
+        assert!(matches!(
+            choose(&d, Some("amd")),
+            Err(VulkanError::DeviceNotFound { .. })
+        ));
+        let e = choose(&d, Some("old")).unwrap_err();
+        assert!(matches!(e, VulkanError::MissingFeature { .. }));
+        assert!(e.to_string().contains("shaderInt64"), "{e}");
+    }
+}
