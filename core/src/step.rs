@@ -517,3 +517,30 @@ pub fn paper_adam() -> [AdamConfig; NUM_GROUPS] {
         AdamConfig::new(1e-5),
     ]
 }
+
+/// Borrows per-group buffers (any owner: `Vec`, arrays) as the [`GroupState`]s of a
+/// [`CpuBackend`], in [`Group::ALL`] order.
+pub fn group_states<'a, F: AsMut<[f32]>, I: AsMut<[i64]>>(
+    params: &'a mut [F; NUM_GROUPS],
+    m: &'a mut [F; NUM_GROUPS],
+    v: &'a mut [F; NUM_GROUPS],
+    grads: &'a mut [I; NUM_GROUPS],
+) -> [GroupState<'a>; NUM_GROUPS] {
+    let [p0, p1, p2, p3, p4] = params;
+    let [m0, m1, m2, m3, m4] = m;
+    let [v0, v1, v2, v3, v4] = v;
+    let [g0, g1, g2, g3, g4] = grads;
+    let s = |p: &'a mut F, m: &'a mut F, v: &'a mut F, g: &'a mut I| GroupState {
+        params: p.as_mut(),
+        m: m.as_mut(),
+        v: v.as_mut(),
+        grad: g.as_mut(),
+    };
+    [
+        s(p0, m0, v0, g0),
+        s(p1, m1, v1, g1),
+        s(p2, m2, v2, g2),
+        s(p3, m3, v3, g3),
+        s(p4, m4, v4, g4),
+    ]
+}

@@ -14,7 +14,7 @@ use himap_core::model::{
 };
 use himap_core::render::RenderMode;
 use himap_core::rng::SplitMix;
-use himap_core::step::{Backend, CpuBackend, GroupState};
+use himap_core::step::{Backend, CpuBackend};
 use himap_core::Aabb;
 use safetensors::tensor::{Dtype, TensorView};
 use serde_json::json;
@@ -128,42 +128,7 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
     let mut v = data.v.clone();
     let lens = layout.group_lens();
     let mut grads: [Vec<i64>; 5] = lens.map(|n| vec![0; n]);
-    let [p0, p1, p2, p3, p4] = &mut params;
-    let [m0, m1, m2, m3, m4] = &mut m;
-    let [v0, v1, v2, v3, v4] = &mut v;
-    let [g0, g1, g2, g3, g4] = &mut grads;
-    let groups = [
-        GroupState {
-            params: p0,
-            m: m0,
-            v: v0,
-            grad: g0,
-        },
-        GroupState {
-            params: p1,
-            m: m1,
-            v: v1,
-            grad: g1,
-        },
-        GroupState {
-            params: p2,
-            m: m2,
-            v: v2,
-            grad: g2,
-        },
-        GroupState {
-            params: p3,
-            m: m3,
-            v: v3,
-            grad: g3,
-        },
-        GroupState {
-            params: p4,
-            m: m4,
-            v: v4,
-            grad: g4,
-        },
-    ];
+    let groups = himap_core::step::group_states(&mut params, &mut m, &mut v, &mut grads);
     let mut backend = CpuBackend::new(layout, groups, himap_core::step::paper_adam())?;
     let mut results = vec![RayResult::default(); rays.len()];
     let stats = backend.train_step(&rays, &loss, &mut results)?;

@@ -5,7 +5,7 @@ use himap::backend::{ModelData, ParallelCpuBackend};
 use himap::dump::{random_rays, small_config};
 use himap_core::model::{Group, LossConfig, ModelLayout, RayResult, NUM_GROUPS};
 use himap_core::render::RenderMode;
-use himap_core::step::{paper_adam, Backend, CpuBackend, GroupState};
+use himap_core::step::{paper_adam, Backend, CpuBackend};
 
 const STEPS: usize = 3;
 
@@ -36,42 +36,7 @@ fn reference(
     let mut grads: [Vec<i64>; NUM_GROUPS] = layout.group_lens().map(|n| vec![0; n]);
     let mut all = Vec::new();
     {
-        let [p0, p1, p2, p3, p4] = &mut params;
-        let [m0, m1, m2, m3, m4] = &mut m;
-        let [v0, v1, v2, v3, v4] = &mut v;
-        let [g0, g1, g2, g3, g4] = &mut grads;
-        let groups = [
-            GroupState {
-                params: p0,
-                m: m0,
-                v: v0,
-                grad: g0,
-            },
-            GroupState {
-                params: p1,
-                m: m1,
-                v: v1,
-                grad: g1,
-            },
-            GroupState {
-                params: p2,
-                m: m2,
-                v: v2,
-                grad: g2,
-            },
-            GroupState {
-                params: p3,
-                m: m3,
-                v: v3,
-                grad: g3,
-            },
-            GroupState {
-                params: p4,
-                m: m4,
-                v: v4,
-                grad: g4,
-            },
-        ];
+        let groups = himap_core::step::group_states(&mut params, &mut m, &mut v, &mut grads);
         let mut cpu = CpuBackend::new(layout, groups, paper_adam()).unwrap();
         for (s, batch) in rays.iter().enumerate() {
             let mut res = vec![RayResult::default(); batch.len()];
