@@ -61,6 +61,29 @@ impl Intrinsics {
     }
 }
 
+/// Read access to a sequence of camera poses: a slice on the CPU, storage-buffer words on a
+/// GPU (which cannot build slices of local arrays). Past the end reads [`Pose::IDENTITY`].
+pub trait PoseRead {
+    fn count(&self) -> usize;
+    fn pose(&self, i: usize) -> Pose;
+}
+
+impl PoseRead for [Pose] {
+    #[inline(always)]
+    fn count(&self) -> usize {
+        self.len()
+    }
+
+    #[inline(always)]
+    fn pose(&self, i: usize) -> Pose {
+        if i < self.len() {
+            self[i]
+        } else {
+            Pose::IDENTITY
+        }
+    }
+}
+
 /// A rigid camera-to-world transform, stored as the top 3x4 of the row-major 4x4 matrix.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]

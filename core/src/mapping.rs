@@ -7,11 +7,12 @@
 //! "slots"; the window names which slot each window frame uses. Colour values are
 //! `byte / 255` (exact and identical on every target).
 
-use crate::camera::{Intrinsics, Pose};
+use crate::camera::{Intrinsics, Pose, PoseRead};
 use crate::model::{
     ray_backward, ray_forward, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
     SampleScratch,
 };
+use crate::render::RayOutput;
 use crate::warp::{warp_pixel, FrameImages, WarpConfig, MAX_WINDOW};
 use crate::ParamRead;
 
@@ -128,46 +129,60 @@ pub struct PixelResult {
 }
 
 /// The window every pixel of an iteration refers to.
-pub struct WindowView<'a, I: FrameImages + ?Sized> {
+pub struct WindowView<'a, I: FrameImages + ?Sized, PS: PoseRead + ?Sized = [Pose]> {
     pub k: Intrinsics,
     /// Camera-to-world poses of the window frames.
-    pub poses: &'a [Pose],
+    pub poses: &'a PS,
     pub images: &'a I,
 }
 
-/// Forward, losses and backward for one sampled pixel. `pixel_id` seeds the stratified jitter
-/// (use the pixel's index in the batch).
-#[allow(clippy::too_many_arguments)]
-pub fn pixel_train<P: ParamRead + ?Sized, I: FrameImages + ?Sized, S: ModelGradSink>(
-    layout: &ModelLayout,
-    params: &Params<'_, P>,
-    window: &WindowView<'_, I>,
+/// The camera ray through a sampled pixel, with the pixel's colour as target (no target
+/// depth: monocular). `None`-free for kernels: a frame outside the window gives a zero ray
+/// and `false`.
+#[inline(always)]
+pub fn pixel_ray<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
+    window: &WindowView<'_, I, PS>,
     px: PixelSample,
-    pixel_id: u32,
-    loss: &MappingLoss,
-    cache: &mut RayCache,
-    scratch: &mut SampleScratch,
-    sink: &mut S,
-) -> PixelResult {
-    let n = window.poses.len();
+) -> (Ray, bool) {
     let f = px.frame as usize;
-    if f >= n {
-        return PixelResult::default();
+    if f >= window.poses.count() {
+        let z = [0.0f32; 3];
+        return (
+            Ray {
+                origin: z,
+                dir: z,
+                target: z,
+                target_depth: 0.0,
+            },
+            false,
+        );
     }
-    let pose = &window.poses[f];
+    let pose = window.poses.pose(f);
     let (origin, dir) = pose.ray(&window.k, px.u as f32, px.v as f32);
     let target = window.images.texel(f, px.u, px.v);
-    let ray = Ray {
-        origin,
-        dir,
-        target,
-        target_depth: 0.0,
-    };
-    ray_forward(
-        layout, params, &ray, pixel_id, loss.seed, true, cache, scratch,
-    );
-    let out = cache.out;
-    let (l1, d_c) = crate::loss::l1_color(out.color, target);
+    (
+        Ray {
+            origin,
+            dir,
+            target,
+            target_depth: 0.0,
+        },
+        true,
+    )
+}
+
+/// The losses of [`pixel_train`] for a rendered pixel (`out` from `n` samples): the pixel's
+/// result and the cotangents of the rendered colour and depth.
+#[inline(always)]
+pub fn pixel_loss<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
+    window: &WindowView<'_, I, PS>,
+    px: PixelSample,
+    ray: &Ray,
+    out: &RayOutput,
+    n: usize,
+    loss: &MappingLoss,
+) -> (PixelResult, [f32; 3], f32) {
+    let (l1, d_c) = crate::loss::l1_color(out.color, ray.target);
     let kc = loss.color_scale * loss.lambda_color;
     let d_color = [kc * d_c[0], kc * d_c[1], kc * d_c[2]];
     let mut result = PixelResult {
@@ -179,13 +194,13 @@ pub fn pixel_train<P: ParamRead + ?Sized, I: FrameImages + ?Sized, S: ModelGradS
         warp_views: 0,
     };
     let mut d_depth = 0.0;
-    if loss.lambda_warp != 0.0 && cache.n > 0 {
+    if loss.lambda_warp != 0.0 && n > 0 {
         let w = warp_pixel(
             &loss.warp,
             &window.k,
             window.poses,
-            n,
-            f,
+            window.poses.count(),
+            px.frame as usize,
             px.u,
             px.v,
             out.depth,
@@ -196,12 +211,43 @@ pub fn pixel_train<P: ParamRead + ?Sized, I: FrameImages + ?Sized, S: ModelGradS
         result.warp_views = w.valid_views;
         d_depth = kw * w.d_depth;
     }
-    if loss.lambda_depth_prior != 0.0 && cache.n > 0 {
+    if loss.lambda_depth_prior != 0.0 && n > 0 {
         let (v, dv) = crate::loss::smooth_l1(out.depth - loss.depth_prior, 0.1);
         let kp = loss.color_scale * loss.lambda_depth_prior;
         result.color_loss += kp * v;
         d_depth += kp * dv;
     }
+    (result, d_color, d_depth)
+}
+
+/// Forward, losses and backward for one sampled pixel. `pixel_id` seeds the stratified jitter
+/// (use the pixel's index in the batch). Stages: [`pixel_ray`], `ray_forward`, [`pixel_loss`],
+/// `ray_backward` (a GPU runs them as separate passes with the same results).
+#[allow(clippy::too_many_arguments)]
+pub fn pixel_train<
+    P: ParamRead + ?Sized,
+    I: FrameImages + ?Sized,
+    PS: PoseRead + ?Sized,
+    S: ModelGradSink,
+>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    window: &WindowView<'_, I, PS>,
+    px: PixelSample,
+    pixel_id: u32,
+    loss: &MappingLoss,
+    cache: &mut RayCache,
+    scratch: &mut SampleScratch,
+    sink: &mut S,
+) -> PixelResult {
+    let (ray, ok) = pixel_ray(window, px);
+    if !ok {
+        return PixelResult::default();
+    }
+    ray_forward(
+        layout, params, &ray, pixel_id, loss.seed, true, cache, scratch,
+    );
+    let (result, d_color, d_depth) = pixel_loss(window, px, &ray, &cache.out, cache.n, loss);
     ray_backward(
         layout,
         params,

@@ -489,9 +489,67 @@ fn point_on_ray(ray: &Ray, t: f32) -> [f32; 3] {
     ]
 }
 
+/// The sample depths of a ray: `t[0..n]` stratified between the ray's entry into and exit
+/// from the scene box (jittered with `seed`/`ray_id` when `jitter`, bin centres otherwise).
+/// Returns `n`: `layout.config.samples`, or 0 when the ray misses the box. Stage 1 of
+/// [`ray_forward`]; the GPU runs it once per (ray, sample) invocation.
+pub fn ray_samples(
+    layout: &ModelLayout,
+    ray: &Ray,
+    ray_id: u32,
+    seed: u32,
+    jitter: bool,
+    t: &mut [f32; MAX_SAMPLES],
+) -> usize {
+    let (near, far, hit) = render::ray_aabb(ray.origin, ray.dir, &layout.config.aabb);
+    if !(hit && far > near) {
+        return 0;
+    }
+    let n = layout.config.samples as usize;
+    let n = if n > MAX_SAMPLES { MAX_SAMPLES } else { n };
+    render::stratified_samples(near, far, n, seed, ray_id, jitter, t);
+    n
+}
+
+/// Signed distance and colour at depth `t` along `ray` (stage 2 of [`ray_forward`], one
+/// sample).
+#[inline(always)]
+pub fn sample_forward<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    ray: &Ray,
+    t: f32,
+    s: &mut SampleScratch,
+) -> (f32, [f32; 3]) {
+    let p = point_on_ray(ray, t);
+    let sdf = sdf_at(layout, params, p, s);
+    (sdf, color_at(layout, params, p, s))
+}
+
+/// Composites `cache.t/sdf/rgb[0..cache.n]` into `cache.out` (stage 3 of [`ray_forward`]);
+/// `n = 0` renders nothing (all zeros).
+#[inline(always)]
+pub fn ray_composite(layout: &ModelLayout, beta: f32, cache: &mut RayCache) {
+    if cache.n == 0 {
+        cache.out = RayOutput::zeroed();
+        return;
+    }
+    render::render_forward(
+        layout.config.render_mode,
+        cache.n,
+        &cache.sdf,
+        &cache.rgb,
+        &cache.t,
+        beta,
+        &mut cache.out,
+    );
+}
+
 /// Samples a ray inside the scene box, evaluates the field and renders colour, depth and
 /// opacity into `cache`. A ray that misses the box renders nothing (n = 0, all zeros).
 /// `jitter` selects stratified jitter (training) or bin centres (rendering and evaluation).
+/// The three stages ([`ray_samples`], [`sample_forward`] per sample, [`ray_composite`]) are
+/// public so that a GPU can run them as separate passes with the same results.
 #[allow(clippy::too_many_arguments)]
 pub fn ray_forward<P: ParamRead + ?Sized>(
     layout: &ModelLayout,
@@ -503,34 +561,16 @@ pub fn ray_forward<P: ParamRead + ?Sized>(
     cache: &mut RayCache,
     s: &mut SampleScratch,
 ) {
-    let (near, far, hit) = render::ray_aabb(ray.origin, ray.dir, &layout.config.aabb);
-    let n = if hit && far > near {
-        layout.config.samples as usize
-    } else {
-        0
-    };
+    let n = ray_samples(layout, ray, ray_id, seed, jitter, &mut cache.t);
     cache.n = n;
-    if n == 0 {
-        cache.out = RayOutput::zeroed();
-        return;
-    }
-    render::stratified_samples(near, far, n, seed, ray_id, jitter, &mut cache.t);
     let mut i = 0;
     while i < n {
-        let p = point_on_ray(ray, cache.t[i]);
-        cache.sdf[i] = sdf_at(layout, params, p, s);
-        cache.rgb[i] = color_at(layout, params, p, s);
+        let (sdf, rgb) = sample_forward(layout, params, ray, cache.t[i], s);
+        cache.sdf[i] = sdf;
+        cache.rgb[i] = rgb;
         i += 1;
     }
-    render::render_forward(
-        layout.config.render_mode,
-        n,
-        &cache.sdf,
-        &cache.rgb,
-        &cache.t,
-        params.beta,
-        &mut cache.out,
-    );
+    ray_composite(layout, params.beta, cache);
 }
 
 /// Loss weights and switches of one training step.
@@ -575,7 +615,29 @@ pub fn ray_train<P: ParamRead + ?Sized, S: ModelGradSink>(
     sink: &mut S,
 ) -> RayResult {
     ray_forward(layout, params, ray, ray_id, loss.seed, true, cache, s);
-    let out = &cache.out;
+    let (result, d_color, d_depth) = ray_loss(ray, &cache.out, loss);
+    if cache.n == 0 {
+        return result;
+    }
+    ray_backward(
+        layout,
+        params,
+        ray,
+        d_color,
+        d_depth,
+        0.0,
+        loss.color_to_geometry,
+        cache,
+        s,
+        sink,
+    );
+    result
+}
+
+/// The loss of [`ray_train`] for a rendered ray: the ray's result and the cotangents of the
+/// rendered colour and depth.
+#[inline(always)]
+pub fn ray_loss(ray: &Ray, out: &RayOutput, loss: &LossConfig) -> (RayResult, [f32; 3], f32) {
     let (l1, d_c) = crate::loss::l1_color(out.color, ray.target);
     let mut value = loss.lambda_color * l1;
     let k = loss.ray_scale * loss.lambda_color;
@@ -599,22 +661,64 @@ pub fn ray_train<P: ParamRead + ?Sized, S: ModelGradSink>(
         opacity: out.opacity,
         loss: loss.ray_scale * value,
     };
-    if cache.n == 0 {
-        return result;
+    (result, d_color, d_depth)
+}
+
+/// Backward of [`sample_forward`] for one sample at depth `t` along `ray`: `d_sdf` into the
+/// geometry groups, `d_rgb` into the appearance groups (each skipped when zero).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub fn sample_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    ray: &Ray,
+    t: f32,
+    d_sdf: f32,
+    d_rgb: [f32; 3],
+    s: &mut SampleScratch,
+    sink: &mut S,
+) {
+    let p = point_on_ray(ray, t);
+    if d_sdf != 0.0 {
+        sdf_backward(layout, params, p, d_sdf, s, sink);
     }
-    ray_backward(
-        layout,
-        params,
-        ray,
+    if d_rgb[0] != 0.0 || d_rgb[1] != 0.0 || d_rgb[2] != 0.0 {
+        color_backward(layout, params, p, d_rgb, s, sink);
+    }
+}
+
+/// Backward of [`ray_composite`]: the per-sample cotangents `d_sdf`, `d_rgb` and `d_beta`
+/// from those of the rendered colour, depth and opacity.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub fn ray_composite_backward(
+    layout: &ModelLayout,
+    beta: f32,
+    cache: &RayCache,
+    d_color: [f32; 3],
+    d_depth: f32,
+    d_opacity: f32,
+    color_to_geometry: bool,
+    d_sdf: &mut [f32; MAX_SAMPLES],
+    d_rgb: &mut [[f32; 3]; MAX_SAMPLES],
+    d_beta: &mut f32,
+) {
+    render::render_backward(
+        layout.config.render_mode,
+        cache.n,
+        &cache.sdf,
+        &cache.rgb,
+        &cache.t,
+        beta,
+        &cache.out,
         d_color,
         d_depth,
-        0.0,
-        loss.color_to_geometry,
-        cache,
-        s,
-        sink,
+        d_opacity,
+        color_to_geometry,
+        d_sdf,
+        d_rgb,
+        d_beta,
     );
-    result
 }
 
 /// Backward from the rendered colour, depth and opacity of a ray whose forward is in `cache`.
@@ -638,14 +742,10 @@ pub fn ray_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
     let mut d_sdf = [0.0f32; MAX_SAMPLES];
     let mut d_rgb = [[0.0f32; 3]; MAX_SAMPLES];
     let mut d_beta = 0.0f32;
-    render::render_backward(
-        layout.config.render_mode,
-        n,
-        &cache.sdf,
-        &cache.rgb,
-        &cache.t,
+    ray_composite_backward(
+        layout,
         params.beta,
-        &cache.out,
+        cache,
         d_color,
         d_depth,
         d_opacity,
@@ -656,13 +756,7 @@ pub fn ray_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
     );
     let mut i = 0;
     while i < n {
-        let p = point_on_ray(ray, cache.t[i]);
-        if d_sdf[i] != 0.0 {
-            sdf_backward(layout, params, p, d_sdf[i], s, sink);
-        }
-        if d_rgb[i][0] != 0.0 || d_rgb[i][1] != 0.0 || d_rgb[i][2] != 0.0 {
-            color_backward(layout, params, p, d_rgb[i], s, sink);
-        }
+        sample_backward(layout, params, ray, cache.t[i], d_sdf[i], d_rgb[i], s, sink);
         i += 1;
     }
     sink.add(Group::Beta, 0, d_beta);

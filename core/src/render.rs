@@ -299,8 +299,9 @@ pub fn render_backward(
         i += 1;
     }
     match mode {
-        RenderMode::SdfDensity | RenderMode::Occupancy => {
-            let density = matches!(mode, RenderMode::SdfDensity);
+        RenderMode::SdfDensity => {
+            // dL/dsigma_k = T_{k+1} (g_k - Q_k), with T_{k+1} = T_k exp(-sigma_k) as in the
+            // forward; Q_k = sum_{j>k} g_j w_j / T_{k+1}, built back to front.
             let mut q = 0.0f32;
             let mut k = n;
             while k > 0 {
@@ -309,27 +310,29 @@ pub fn render_backward(
                 let x = beta * sdf[k];
                 let sp = math::sigmoid(x);
                 let sm = math::sigmoid(-x);
-                let (alpha, one_minus) = if density {
-                    let e = math::exp(-(beta * sm));
-                    (1.0 - e, e)
-                } else {
-                    (sm, sp)
-                };
-                // dL/dalpha_k = T_k (g_k - Q_k); in density mode take dL/dsigma_k directly as
-                // T_{k+1} (g_k - Q_k), with T_{k+1} = T_k exp(-sigma_k) as in the forward.
-                let trans = fwd.trans[k];
-                let (ds, dbeta) = if density {
-                    let d_sigma = trans * one_minus * (g - q);
-                    let ss = sm * sp;
-                    (d_sigma * (-(beta * beta) * ss), d_sigma * (sm - x * ss))
-                } else {
-                    let d_alpha = trans * (g - q);
-                    let ss = sm * sp;
-                    (d_alpha * (-beta * ss), d_alpha * (-sdf[k] * ss))
-                };
-                d_sdf[k] = ds;
-                db += dbeta;
-                q = g * alpha + one_minus * q;
+                let e = math::exp(-(beta * sm));
+                let d_sigma = fwd.trans[k] * e * (g - q);
+                let ss = sm * sp;
+                d_sdf[k] = d_sigma * (-(beta * beta) * ss);
+                db += d_sigma * (sm - x * ss);
+                q = g * (1.0 - e) + e * q;
+            }
+        }
+        RenderMode::Occupancy => {
+            // dL/dalpha_k = T_k (g_k - Q_k), alpha_k = sig(-x_k), 1 - alpha_k = sig(x_k).
+            let mut q = 0.0f32;
+            let mut k = n;
+            while k > 0 {
+                k -= 1;
+                let g = weight_cotangent(dc, rgb[k], d_depth, t[k], d_opacity);
+                let x = beta * sdf[k];
+                let sp = math::sigmoid(x);
+                let sm = math::sigmoid(-x);
+                let d_alpha = fwd.trans[k] * (g - q);
+                let ss = sm * sp;
+                d_sdf[k] = d_alpha * (-beta * ss);
+                db += d_alpha * (-sdf[k] * ss);
+                q = g * sm + sp * q;
             }
         }
         RenderMode::SdfDirect => {

@@ -68,7 +68,7 @@
 //! warping and sampling) on one core of the 2-core development VM, release build, 320x240
 //! images (measured with a throw-away harness, noisy: 140 to 200 µs).
 
-use crate::camera::{Intrinsics, Pose};
+use crate::camera::{Intrinsics, Pose, PoseRead};
 use crate::loss::{smooth_l1, ssim_patch, PATCH, PATCH_PIXELS};
 use crate::Error;
 
@@ -296,10 +296,10 @@ fn centre_valid(pu: f32, pv: f32, z: f32, w: u32, h: u32, margin: f32) -> bool {
 /// window (`0..n_frames`, `poses[j]` camera-to-world, `images` frame `j`), and its derivative
 /// with respect to `depth`. Formulas, validity rules and summation order in the module docs.
 #[allow(clippy::too_many_arguments)]
-pub fn warp_pixel<I: FrameImages + ?Sized>(
+pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     cfg: &WarpConfig,
     k: &Intrinsics,
-    poses: &[Pose],
+    poses: &PS,
     n_frames: usize,
     src: usize,
     u: u32,
@@ -309,8 +309,8 @@ pub fn warp_pixel<I: FrameImages + ?Sized>(
 ) -> WarpResult {
     let (w, h) = images.size();
     let mut n = n_frames;
-    if n > poses.len() {
-        n = poses.len();
+    if n > poses.count() {
+        n = poses.count();
     }
     if n > MAX_WINDOW {
         n = MAX_WINDOW;
@@ -329,7 +329,7 @@ pub fn warp_pixel<I: FrameImages + ?Sized>(
     let small = if side < 7 { side } else { 7 };
     // Storage index of offset (dx, dy) is (dy + 5) * PATCH + dx + 5.
     let centre = PATCH_PIXELS / 2;
-    let pose_s = &poses[src];
+    let pose_s = poses.pose(src);
 
     // Patch points on the plane and their derivative with respect to depth (world frame),
     // and the source patch.
@@ -374,7 +374,7 @@ pub fn warp_pixel<I: FrameImages + ?Sized>(
     let mut j = 0;
     while j < n {
         if j != src {
-            let x = poses[j].inverse_transform(xw[centre]);
+            let x = poses.pose(j).inverse_transform(xw[centre]);
             let (pu, pv, z) = k.project(x);
             if centre_valid(pu, pv, z, w, h, cfg.margin) {
                 mask |= 1u32 << j;
@@ -409,7 +409,7 @@ pub fn warp_pixel<I: FrameImages + ?Sized>(
             j += 1;
             continue;
         }
-        let pose_j = &poses[j];
+        let pose_j = poses.pose(j);
 
         // Warped patch and its derivative with respect to depth.
         let mut r = lo;
@@ -418,7 +418,7 @@ pub fn warp_pixel<I: FrameImages + ?Sized>(
             while col < hi {
                 let p = r * PATCH + col;
                 let x = pose_j.inverse_transform(xw[p]);
-                let xd = inverse_rotate(pose_j, dxw[p]);
+                let xd = inverse_rotate(&pose_j, dxw[p]);
                 let (pu, pv, z) = k.project(x);
                 let (val, du, dv) = sample_bilinear(images, j, w, h, pu, pv);
                 tgt[p] = val;
@@ -946,11 +946,11 @@ mod tests {
             height: H,
             data: &data,
         };
-        let r = warp_pixel(&cfg, &k, &poses, 3, 0, 16, 24, 2.0, &img);
+        let r = warp_pixel(&cfg, &k, &poses[..], 3, 0, 16, 24, 2.0, &img);
         assert_eq!(r.valid_views, 1);
-        let r = warp_pixel(&cfg, &k, &poses, 3, 3, 16, 24, 2.0, &img);
+        let r = warp_pixel(&cfg, &k, &poses[..], 3, 3, 16, 24, 2.0, &img);
         assert_eq!(r, WarpResult::default());
-        let r = warp_pixel(&cfg, &k, &poses, 1000, 0, 16, 24, 2.0, &img);
+        let r = warp_pixel(&cfg, &k, &poses[..], 1000, 0, 16, 24, 2.0, &img);
         assert_eq!(r, full);
     }
 

@@ -27,10 +27,12 @@ pub mod words;
 use himap_core::adam::{self, AdamStep};
 use himap_core::camera::{Intrinsics, Pose};
 use himap_core::grid::{self, MAX_GRID_FEATURES};
+use himap_core::mapping::{self, PixelResult, PixelSample, WindowImages, WindowView};
 use himap_core::mlp::{self, MlpScratch, MAX_OUT, MAX_WIDTH};
 use himap_core::model::{
-    self, Group, LossConfig, ModelGradSink, Params, Ray, RayCache, SampleScratch,
+    self, Group, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache, SampleScratch,
 };
+use himap_core::render::MAX_SAMPLES;
 use himap_core::{fixed, rng, Aabb, GradSink};
 use spirv_std::arch::atomic_i_add;
 use spirv_std::glam::UVec3;
@@ -360,19 +362,222 @@ fn first_or_zero(v: &[f32]) -> f32 {
     float_at(v, 0)
 }
 
-/// One training ray per invocation: `ray_train` (forward with jitter, loss, backward) with
-/// the gradients added into the five fixed-point buffers by [`AtomicModelSink`].
+/// Floats of one sample record in the samples buffer: `t`, `sdf`, `rgb` (3) written by
+/// [`sample_forward_cs`], then `d_sdf`, `d_rgb` (3) written by the composite passes
+/// ([`ray_train_cs`], [`pixel_train_cs`]). Sample `k` of ray `r` is record `r * S + k`, with
+/// `S = layout.config.samples`.
+pub const SAMPLE_FLOATS: usize = 9;
+/// Floats of one [`PixelResult`] in the results buffer: colour (3), depth, opacity,
+/// colour loss, warp loss, valid views (as f32, exact).
+pub const PIXEL_RESULT_FLOATS: usize = 8;
+
+/// Push constants of the per-sample passes.
+#[derive(Clone, Copy)]
+#[repr(C)]
+pub struct SamplePush {
+    /// Sample records in this dispatch; invocation `i` handles record `first + i`.
+    pub n: u32,
+    pub first: u32,
+    /// Stratified jitter seed ([`sample_forward_cs`]).
+    pub seed: u32,
+    /// 1: jittered samples (training), 0: bin centres (rendering).
+    pub jitter: u32,
+}
+
+/// Samples per ray of a layout (`config.samples`, at most `MAX_SAMPLES`, at least 1).
+#[inline(always)]
+fn samples_per_ray(layout: &ModelLayout) -> usize {
+    let s = layout.config.samples as usize;
+    if s > MAX_SAMPLES {
+        MAX_SAMPLES
+    } else if s == 0 {
+        1
+    } else {
+        s
+    }
+}
+
+/// Pass 1 of a step or a render: one sample per invocation. Record `i` is sample `k = i % S`
+/// of ray `r = i / S`; it gets `t_k` from `model::ray_samples` (ray id `r`) and the field's
+/// SDF and colour there (`model::sample_forward`). Samples past the ray's `n` are left as they
+/// are.
 ///
-/// - binding 0 `model`: the [`model::ModelLayout`] as words ([`words::model_layout_from_words`]);
+/// - binding 0 `model`: the [`model::ModelLayout`] as words;
 /// - bindings 1..=5: parameters of the groups in [`Group::ALL`] order (beta: one float);
-/// - bindings 6..=10: the groups' `i64` gradients (zeroed by the host before the step);
-/// - binding 11 `rays`: [`RAY_FLOATS`] floats per ray;
-/// - binding 12 `results`: [`RESULT_FLOATS`] floats per ray.
+/// - binding 6 `rays`: [`RAY_FLOATS`] floats per ray;
+/// - binding 7 `samples`: [`SAMPLE_FLOATS`] floats per sample record.
 #[spirv(compute(threads(64)))]
 #[allow(clippy::too_many_arguments)]
-pub fn train_ray_cs(
+pub fn sample_forward_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &SamplePush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_geometry_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] samples: &mut [f32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let i = (pc.first + id.x) as usize;
+    let layout = words::model_layout_from_words(model_words, 0);
+    let per = samples_per_ray(&layout);
+    let (r, k) = (i / per, i % per);
+    let ray = read_ray(rays, r);
+    let mut t = [0.0f32; MAX_SAMPLES];
+    let n = model::ray_samples(&layout, &ray, r as u32, pc.seed, pc.jitter != 0, &mut t);
+    if k >= n || (i + 1) * SAMPLE_FLOATS > samples.len() {
+        return;
+    }
+    let params = Params {
+        geometry_grid: p_geometry_grid,
+        appearance_grid: p_appearance_grid,
+        geometry_mlp: p_geometry_mlp,
+        appearance_mlp: p_appearance_mlp,
+        beta: first_or_zero(p_beta),
+    };
+    let mut scratch = SampleScratch::new();
+    let (sdf, rgb) = model::sample_forward(&layout, &params, &ray, t[k], &mut scratch);
+    let b = i * SAMPLE_FLOATS;
+    samples[b] = t[k];
+    samples[b + 1] = sdf;
+    samples[b + 2] = rgb[0];
+    samples[b + 3] = rgb[1];
+    samples[b + 4] = rgb[2];
+}
+
+/// Rebuilds a ray's [`RayCache`] from its sample records (the `t` are recomputed, which gives
+/// the same bits as the stored ones) and composites it.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn load_ray(
+    layout: &ModelLayout,
+    beta: f32,
+    ray: &Ray,
+    r: usize,
+    seed: u32,
+    jitter: bool,
+    samples: &[f32],
+    cache: &mut RayCache,
+) {
+    let per = samples_per_ray(layout);
+    cache.n = model::ray_samples(layout, ray, r as u32, seed, jitter, &mut cache.t);
+    let mut k = 0;
+    while k < cache.n {
+        let b = (r * per + k) * SAMPLE_FLOATS;
+        cache.sdf[k] = float_at(samples, b + 1);
+        cache.rgb[k] = [
+            float_at(samples, b + 2),
+            float_at(samples, b + 3),
+            float_at(samples, b + 4),
+        ];
+        k += 1;
+    }
+    model::ray_composite(layout, beta, cache);
+}
+
+/// Writes the per-sample cotangents of ray `r` into its records (zeros past `n`, so that
+/// [`sample_backward_cs`] skips them).
+#[inline(always)]
+fn store_cotangents(
+    layout: &ModelLayout,
+    r: usize,
+    n: usize,
+    d_sdf: &[f32; MAX_SAMPLES],
+    d_rgb: &[[f32; 3]; MAX_SAMPLES],
+    samples: &mut [f32],
+) {
+    let per = samples_per_ray(layout);
+    let mut k = 0;
+    while k < per {
+        let b = (r * per + k) * SAMPLE_FLOATS;
+        if b + SAMPLE_FLOATS <= samples.len() {
+            let live = k < n;
+            samples[b + 5] = if live { d_sdf[k] } else { 0.0 };
+            samples[b + 6] = if live { d_rgb[k][0] } else { 0.0 };
+            samples[b + 7] = if live { d_rgb[k][1] } else { 0.0 };
+            samples[b + 8] = if live { d_rgb[k][2] } else { 0.0 };
+        }
+        k += 1;
+    }
+}
+
+/// Pass 2 of a training step: one ray per invocation. Composites the ray from its sample
+/// records, takes `ray_loss`, back-propagates through the compositing
+/// (`model::ray_composite_backward`), stores the per-sample cotangents and adds the beta
+/// gradient.
+///
+/// - binding 0 `model`; binding 1 `beta` (one float); binding 2 the beta gradient (`i64`);
+/// - binding 3 `rays`; binding 4 `samples`; binding 5 `results` ([`RESULT_FLOATS`] per ray).
+#[spirv(compute(threads(64)))]
+#[allow(clippy::too_many_arguments)]
+pub fn ray_train_cs(
     #[spirv(global_invocation_id)] id: UVec3,
     #[spirv(push_constant)] pc: &TrainPush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] g_beta: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] samples: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] results: &mut [f32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let r = (pc.first + id.x) as usize;
+    let layout = words::model_layout_from_words(model_words, 0);
+    let beta = first_or_zero(p_beta);
+    let ray = read_ray(rays, r);
+    let mut cache = RayCache::new();
+    load_ray(&layout, beta, &ray, r, pc.seed, true, samples, &mut cache);
+    let loss = LossConfig {
+        lambda_color: pc.lambda_color,
+        lambda_depth: pc.lambda_depth,
+        ray_scale: pc.ray_scale,
+        color_to_geometry: pc.color_to_geometry != 0,
+        seed: pc.seed,
+    };
+    let (res, d_color, d_depth) = model::ray_loss(&ray, &cache.out, &loss);
+    let mut d_sdf = [0.0f32; MAX_SAMPLES];
+    let mut d_rgb = [[0.0f32; 3]; MAX_SAMPLES];
+    if cache.n > 0 {
+        let mut d_beta = 0.0f32;
+        model::ray_composite_backward(
+            &layout,
+            beta,
+            &cache,
+            d_color,
+            d_depth,
+            0.0,
+            loss.color_to_geometry,
+            &mut d_sdf,
+            &mut d_rgb,
+            &mut d_beta,
+        );
+        let q = fixed::to_fixed(d_beta);
+        if q != 0 {
+            atomic_add_i64(g_beta, 0, q);
+        }
+    }
+    store_cotangents(&layout, r, cache.n, &d_sdf, &d_rgb, samples);
+    write_result(results, r, res.color, res.depth, res.opacity, res.loss);
+}
+
+/// Pass 3 of a training or mapping step: one sample per invocation,
+/// `model::sample_backward` of record `i` (ray `i / S`) with its stored `t` and cotangents,
+/// the gradients added by [`AtomicModelSink`].
+///
+/// - binding 0 `model`; bindings 1..=5 the parameters; bindings 6..=10 the gradients;
+/// - binding 11 `rays`; binding 12 `samples`.
+#[spirv(compute(threads(64)))]
+#[allow(clippy::too_many_arguments)]
+pub fn sample_backward_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &SamplePush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
@@ -385,13 +590,24 @@ pub fn train_ray_cs(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] g_appearance_mlp: &mut [i64],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] g_beta: &mut [i64],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] rays: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] results: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] samples: &[f32],
 ) {
     if id.x >= pc.n {
         return;
     }
     let i = (pc.first + id.x) as usize;
+    let b = i * SAMPLE_FLOATS;
+    if b + SAMPLE_FLOATS > samples.len() {
+        return;
+    }
+    let d_sdf = samples[b + 5];
+    let d_rgb = [samples[b + 6], samples[b + 7], samples[b + 8]];
+    if d_sdf == 0.0 && d_rgb[0] == 0.0 && d_rgb[1] == 0.0 && d_rgb[2] == 0.0 {
+        return;
+    }
     let layout = words::model_layout_from_words(model_words, 0);
+    let per = samples_per_ray(&layout);
+    let ray = read_ray(rays, i / per);
     let params = Params {
         geometry_grid: p_geometry_grid,
         appearance_grid: p_appearance_grid,
@@ -406,79 +622,223 @@ pub fn train_ray_cs(
         appearance_mlp: g_appearance_mlp,
         beta: g_beta,
     };
-    let loss = LossConfig {
-        lambda_color: pc.lambda_color,
-        lambda_depth: pc.lambda_depth,
-        ray_scale: pc.ray_scale,
-        color_to_geometry: pc.color_to_geometry != 0,
-        seed: pc.seed,
-    };
-    let ray = read_ray(rays, i);
-    let mut cache = RayCache::new();
     let mut scratch = SampleScratch::new();
-    let r = model::ray_train(
+    model::sample_backward(
         &layout,
         &params,
         &ray,
-        i as u32,
-        &loss,
-        &mut cache,
+        samples[b],
+        d_sdf,
+        d_rgb,
         &mut scratch,
         &mut sink,
     );
-    write_result(results, i, r.color, r.depth, r.opacity, r.loss);
 }
 
-/// One rendering ray per invocation: `ray_forward` without jitter (bin centres), as the CPU
-/// backends' `render`. Bindings 0..=5 as [`train_ray_cs`]; binding 6 `rays`, binding 7
-/// `results` (loss 0).
+/// Pass 2 of a render: one ray per invocation, composited from its sample records at the bin
+/// centres (as the CPU backends' `render`, loss 0).
+///
+/// - binding 0 `model`; binding 1 `beta`; binding 2 `rays`; binding 3 `samples`;
+/// - binding 4 `results` ([`RESULT_FLOATS`] per ray).
 #[spirv(compute(threads(64)))]
-#[allow(clippy::too_many_arguments)]
-pub fn render_ray_cs(
+pub fn ray_render_cs(
     #[spirv(global_invocation_id)] id: UVec3,
     #[spirv(push_constant)] pc: &RangePush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_geometry_mlp: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_mlp: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] samples: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] results: &mut [f32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let r = (pc.first + id.x) as usize;
+    let layout = words::model_layout_from_words(model_words, 0);
+    let ray = read_ray(rays, r);
+    let mut cache = RayCache::new();
+    load_ray(
+        &layout,
+        first_or_zero(p_beta),
+        &ray,
+        r,
+        0,
+        false,
+        samples,
+        &mut cache,
+    );
+    write_result(
+        results,
+        r,
+        cache.out.color,
+        cache.out.depth,
+        cache.out.opacity,
+        0.0,
+    );
+}
+
+/// Pass 0 of a mapping step: the camera ray of every sampled pixel (`mapping::pixel_ray`),
+/// written as a ray record for the per-sample passes. A pixel whose frame is outside the
+/// window gets a zero ray (pass 2 ignores it).
+///
+/// - binding 0 `window`: [`words::WINDOW`] words; binding 1 `pixels`: frame, u, v per pixel;
+/// - binding 2 `images`: the RGBA8 image slots; binding 3 `rays` (written).
+#[spirv(compute(threads(64)))]
+pub fn pixel_rays_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &RangePush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] window_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] pixels: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] images: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] rays: &mut [f32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let i = (pc.first + id.x) as usize;
+    let (n, width, height, slots) = words::window_frames(window_words);
+    let poses = words::WordPoses {
+        words: window_words,
+        n,
+    };
+    let imgs = WindowImages {
+        width,
+        height,
+        slots,
+        pixels: images,
+    };
+    let window = WindowView {
+        k: words::intrinsics_from_words(window_words, 0),
+        poses: &poses,
+        images: &imgs,
+    };
+    let px = read_pixel(pixels, i);
+    let (ray, _) = mapping::pixel_ray(&window, px);
+    let b = i * RAY_FLOATS;
+    if b + RAY_FLOATS <= rays.len() {
+        rays[b] = ray.origin[0];
+        rays[b + 1] = ray.origin[1];
+        rays[b + 2] = ray.origin[2];
+        rays[b + 3] = ray.dir[0];
+        rays[b + 4] = ray.dir[1];
+        rays[b + 5] = ray.dir[2];
+        rays[b + 6] = ray.target[0];
+        rays[b + 7] = ray.target[1];
+        rays[b + 8] = ray.target[2];
+        rays[b + 9] = ray.target_depth;
+    }
+}
+
+#[inline(always)]
+fn u32_at(v: &[u32], k: usize) -> u32 {
+    if k < v.len() {
+        v[k]
+    } else {
+        0
+    }
+}
+
+#[inline(always)]
+fn read_pixel(pixels: &[u32], i: usize) -> PixelSample {
+    PixelSample {
+        frame: u32_at(pixels, 3 * i),
+        u: u32_at(pixels, 3 * i + 1),
+        v: u32_at(pixels, 3 * i + 2),
+    }
+}
+
+/// Pass 2 of a mapping step: one pixel per invocation. Composites the pixel's ray from its
+/// sample records, takes `mapping::pixel_loss` (colour L1, DIM-SLAM warping loss through the
+/// rendered depth, depth prior), back-propagates through the compositing, stores the
+/// per-sample cotangents and adds the beta gradient.
+///
+/// - binding 0 `model`; binding 1 `beta`; binding 2 the beta gradient;
+/// - binding 3 `window` words; binding 4 `pixels`; binding 5 `images`;
+/// - binding 6 `rays` (from [`pixel_rays_cs`]); binding 7 `samples`;
+/// - binding 8 `results` ([`PIXEL_RESULT_FLOATS`] per pixel).
+#[spirv(compute(threads(64)))]
+#[allow(clippy::too_many_arguments)]
+pub fn pixel_train_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &RangePush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] g_beta: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] window_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] pixels: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] images: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] rays: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] results: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] samples: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] results: &mut [f32],
 ) {
     if id.x >= pc.n {
         return;
     }
     let i = (pc.first + id.x) as usize;
     let layout = words::model_layout_from_words(model_words, 0);
-    let params = Params {
-        geometry_grid: p_geometry_grid,
-        appearance_grid: p_appearance_grid,
-        geometry_mlp: p_geometry_mlp,
-        appearance_mlp: p_appearance_mlp,
-        beta: first_or_zero(p_beta),
+    let beta = first_or_zero(p_beta);
+    let (n, width, height, slots) = words::window_frames(window_words);
+    let loss = words::mapping_loss_from_words(window_words, words::WINDOW_LOSS);
+    let poses = words::WordPoses {
+        words: window_words,
+        n,
     };
-    let ray = read_ray(rays, i);
-    let mut cache = RayCache::new();
-    let mut scratch = SampleScratch::new();
-    model::ray_forward(
-        &layout,
-        &params,
-        &ray,
-        i as u32,
-        0,
-        false,
-        &mut cache,
-        &mut scratch,
-    );
-    write_result(
-        results,
-        i,
-        cache.out.color,
-        cache.out.depth,
-        cache.out.opacity,
-        0.0,
-    );
+    let imgs = WindowImages {
+        width,
+        height,
+        slots,
+        pixels: images,
+    };
+    let window = WindowView {
+        k: words::intrinsics_from_words(window_words, 0),
+        poses: &poses,
+        images: &imgs,
+    };
+    let px = read_pixel(pixels, i);
+    let mut d_sdf = [0.0f32; MAX_SAMPLES];
+    let mut d_rgb = [[0.0f32; 3]; MAX_SAMPLES];
+    let mut res = PixelResult::default();
+    let mut live = 0;
+    if (px.frame as usize) < n {
+        let ray = read_ray(rays, i);
+        let mut cache = RayCache::new();
+        load_ray(&layout, beta, &ray, i, loss.seed, true, samples, &mut cache);
+        let (r, d_color, d_depth) =
+            mapping::pixel_loss(&window, px, &ray, &cache.out, cache.n, &loss);
+        res = r;
+        live = cache.n;
+        if cache.n > 0 {
+            let mut d_beta = 0.0f32;
+            model::ray_composite_backward(
+                &layout,
+                beta,
+                &cache,
+                d_color,
+                d_depth,
+                0.0,
+                loss.color_to_geometry,
+                &mut d_sdf,
+                &mut d_rgb,
+                &mut d_beta,
+            );
+            let q = fixed::to_fixed(d_beta);
+            if q != 0 {
+                atomic_add_i64(g_beta, 0, q);
+            }
+        }
+    }
+    store_cotangents(&layout, i, live, &d_sdf, &d_rgb, samples);
+    let b = i * PIXEL_RESULT_FLOATS;
+    if b + PIXEL_RESULT_FLOATS <= results.len() {
+        results[b] = res.color[0];
+        results[b + 1] = res.color[1];
+        results[b + 2] = res.color[2];
+        results[b + 3] = res.depth;
+        results[b + 4] = res.opacity;
+        results[b + 5] = res.color_loss;
+        results[b + 6] = res.warp_loss;
+        results[b + 7] = res.warp_views as f32;
+    }
 }
 
 /// Signed distance at points: `out[i] = sdf_at(points[i])`. Bindings 0..=5 as

@@ -15,12 +15,16 @@
 //! | [`GridConfig`] | [`GRID_CONFIG`] = 11 | kind, levels, channels, cell_sizes (8) |
 //! | [`ModelConfig`] | [`MODEL_CONFIG`] = 36 | aabb (6), geometry grid config (11), appearance grid config (11), hidden, hidden_layers, dual_path, render_mode, samples, beta_init, grid_init_std, sdf_bias_init |
 //! | [`ModelLayout`] | [`MODEL_LAYOUT`] = 262 | config, geometry grid layout, appearance grid layout, geometry MLP layout, appearance MLP layout |
+//! | [`MappingLoss`] | [`MAPPING_LOSS`] = 16 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior |
+//! | window | [`WINDOW`] = 448 | intrinsics, frames, image width, image height, slots ([`MAX_WINDOW`]), poses ([`MAX_WINDOW`] x [`POSE`]), mapping loss |
 
-use himap_core::camera::{Intrinsics, Pose};
+use himap_core::camera::{Intrinsics, Pose, PoseRead};
 use himap_core::grid::{GridConfig, GridKind, GridLayout, LevelLayout, MAX_LEVELS};
+use himap_core::mapping::MappingLoss;
 use himap_core::mlp::{MlpLayout, MAX_HIDDEN_LAYERS};
 use himap_core::model::{ModelConfig, ModelLayout};
 use himap_core::render::RenderMode;
+use himap_core::warp::{WarpConfig, MAX_WINDOW};
 use himap_core::Aabb;
 
 /// Words of an [`Aabb`].
@@ -42,6 +46,17 @@ pub const GRID_CONFIG: usize = 3 + MAX_LEVELS;
 pub const MODEL_CONFIG: usize = AABB + 2 * GRID_CONFIG + 8;
 /// Words of a [`ModelLayout`].
 pub const MODEL_LAYOUT: usize = MODEL_CONFIG + 2 * GRID_LAYOUT + 2 * MLP_LAYOUT;
+
+/// Words of a [`MappingLoss`].
+pub const MAPPING_LOSS: usize = 16;
+/// Offset of the slot table in the window words.
+pub const WINDOW_SLOTS: usize = INTRINSICS + 3;
+/// Offset of the poses in the window words.
+pub const WINDOW_POSES: usize = WINDOW_SLOTS + MAX_WINDOW;
+/// Offset of the mapping loss in the window words.
+pub const WINDOW_LOSS: usize = WINDOW_POSES + MAX_WINDOW * POSE;
+/// Words of a mapping window (see the table above).
+pub const WINDOW: usize = WINDOW_LOSS + MAPPING_LOSS;
 
 /// Word `i`, or 0 past the end.
 #[inline(always)]
@@ -319,4 +334,109 @@ pub fn model_layout_to_words(l: &ModelLayout, w: &mut [u32], at: usize) {
     grid_layout_to_words(&l.appearance_grid, w, g + GRID_LAYOUT);
     mlp_layout_to_words(&l.geometry_mlp, w, m);
     mlp_layout_to_words(&l.appearance_mlp, w, m + MLP_LAYOUT);
+}
+
+pub fn mapping_loss_from_words(w: &[u32], at: usize) -> MappingLoss {
+    MappingLoss {
+        lambda_color: fword(w, at),
+        lambda_warp: fword(w, at + 1),
+        color_scale: fword(w, at + 2),
+        warp_scale: fword(w, at + 3),
+        color_to_geometry: word(w, at + 4) != 0,
+        seed: word(w, at + 5),
+        warp: WarpConfig {
+            half: word(w, at + 6),
+            margin: fword(w, at + 7),
+            min_views: word(w, at + 8),
+            w_patch11: fword(w, at + 9),
+            w_patch7: fword(w, at + 10),
+            w_patch: fword(w, at + 11),
+            w_center: fword(w, at + 12),
+            center_beta: fword(w, at + 13),
+        },
+        lambda_depth_prior: fword(w, at + 14),
+        depth_prior: fword(w, at + 15),
+    }
+}
+
+pub fn mapping_loss_to_words(l: &MappingLoss, w: &mut [u32], at: usize) {
+    put(w, at, l.lambda_color.to_bits());
+    put(w, at + 1, l.lambda_warp.to_bits());
+    put(w, at + 2, l.color_scale.to_bits());
+    put(w, at + 3, l.warp_scale.to_bits());
+    put(w, at + 4, l.color_to_geometry as u32);
+    put(w, at + 5, l.seed);
+    put(w, at + 6, l.warp.half);
+    put(w, at + 7, l.warp.margin.to_bits());
+    put(w, at + 8, l.warp.min_views);
+    put(w, at + 9, l.warp.w_patch11.to_bits());
+    put(w, at + 10, l.warp.w_patch7.to_bits());
+    put(w, at + 11, l.warp.w_patch.to_bits());
+    put(w, at + 12, l.warp.w_center.to_bits());
+    put(w, at + 13, l.warp.center_beta.to_bits());
+    put(w, at + 14, l.lambda_depth_prior.to_bits());
+    put(w, at + 15, l.depth_prior.to_bits());
+}
+
+/// Window frame count, image size and slot table from window words at 0.
+pub fn window_frames(w: &[u32]) -> (usize, u32, u32, [u32; MAX_WINDOW]) {
+    let mut slots = [0u32; MAX_WINDOW];
+    let mut i = 0;
+    while i < MAX_WINDOW {
+        slots[i] = word(w, WINDOW_SLOTS + i);
+        i += 1;
+    }
+    let n = word(w, INTRINSICS) as usize;
+    let n = if n > MAX_WINDOW { MAX_WINDOW } else { n };
+    (n, word(w, INTRINSICS + 1), word(w, INTRINSICS + 2), slots)
+}
+
+/// Encodes a mapping window at 0 of `w` (at least [`WINDOW`] words); frames past
+/// [`MAX_WINDOW`] are dropped (the host validates the window first).
+pub fn window_to_words(
+    k: &Intrinsics,
+    image: (u32, u32),
+    slots: &[u32],
+    poses: &[Pose],
+    loss: &MappingLoss,
+    w: &mut [u32],
+) {
+    intrinsics_to_words(k, w, 0);
+    let n = poses.len().min(MAX_WINDOW);
+    put(w, INTRINSICS, n as u32);
+    put(w, INTRINSICS + 1, image.0);
+    put(w, INTRINSICS + 2, image.1);
+    let mut i = 0;
+    while i < n {
+        put(
+            w,
+            WINDOW_SLOTS + i,
+            if i < slots.len() { slots[i] } else { 0 },
+        );
+        pose_to_words(&poses[i], w, WINDOW_POSES + i * POSE);
+        i += 1;
+    }
+    mapping_loss_to_words(loss, w, WINDOW_LOSS);
+}
+
+/// The window's poses read straight from the words (a [`PoseRead`] over a storage buffer).
+pub struct WordPoses<'a> {
+    pub words: &'a [u32],
+    pub n: usize,
+}
+
+impl PoseRead for WordPoses<'_> {
+    #[inline(always)]
+    fn count(&self) -> usize {
+        self.n
+    }
+
+    #[inline(always)]
+    fn pose(&self, i: usize) -> Pose {
+        if i < self.n {
+            pose_from_words(self.words, WINDOW_POSES + i * POSE)
+        } else {
+            Pose::IDENTITY
+        }
+    }
 }

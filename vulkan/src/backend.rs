@@ -2,10 +2,26 @@
 //! `himap_core::step::CpuBackend`.
 //!
 //! Parameters, Adam moments and fixed-point gradients of the five groups live in persistent
-//! device buffers (uploaded once at construction, read back only on request). A training step
-//! is one submission: zero the gradients, `train_ray_cs` (one invocation per ray, gradients
-//! added with i64 atomics), `adam_cs` per group. Rays and per-ray results travel through
-//! host-visible buffers; the host sums the loss in ray order, as the CPU does.
+//! device buffers (uploaded once at construction, read back only on request); so do the image
+//! slots of the mapping window (one upload per frame). A training step is one submission of
+//! passes over the core's stages of `ray_train`:
+//!
+//! 1. `sample_forward_cs`: one invocation per (ray, sample): sample depth, SDF, colour;
+//! 2. `ray_train_cs`: one per ray: compositing, loss, compositing backward (per-sample
+//!    cotangents into the samples buffer, beta gradient with an i64 atomic);
+//! 3. `sample_backward_cs`: one per (ray, sample): field backward, gradients added with i64
+//!    atomics (order-independent, so the sums equal the CPU's);
+//! 4. `adam_cs` per group.
+//!
+//! A mapping step runs `pixel_rays_cs` (camera ray of every sampled pixel) first and
+//! `pixel_train_cs` (colour, warping and depth-prior losses) as pass 2. A render is passes 1
+//! and `ray_render_cs`. Splitting per sample keeps every invocation short: real GPUs get
+//! more parallelism, and the software driver (llvmpipe) stays under its limit of 65535 loop
+//! iterations per invocation, past which it silently cuts loops short (that limit is what
+//! made whole-ray kernels disagree with the CPU).
+//!
+//! Rays, pixels and per-item results travel through host-visible buffers; the host sums the
+//! loss in item order, as the CPU does.
 //!
 //! Tensor size: each group is one storage-buffer binding, so a group may hold at most
 //! `maxStorageBufferRange` bytes (128 MiB on lavapipe, 32 Mi floats); larger groups are a
@@ -20,16 +36,27 @@ use himap_core::adam::{AdamConfig, AdamStep};
 use himap_core::error::check_len;
 use himap_core::mapping::PixelResult;
 use himap_core::model::{Group, LossConfig, ModelLayout, Ray, RayResult, NUM_GROUPS};
-use himap_core::step::{summarize, Backend, ImageStore, MapBatch, StepStats};
+use himap_core::render::MAX_SAMPLES;
+use himap_core::step::{
+    summarize, summarize_pixels, window_slots, Backend, ImageStore, MapBatch, StepStats,
+};
 
-/// Floats per ray in the rays buffer (see `train_ray_cs`).
+/// Floats per ray in the rays buffer (see `himap_shaders::RAY_FLOATS`).
 const RAY_FLOATS: usize = 10;
-/// Floats per result.
+/// Floats per ray result (`RESULT_FLOATS`).
 const RESULT_FLOATS: usize = 6;
+/// Floats per sample record (`SAMPLE_FLOATS`).
+const SAMPLE_FLOATS: usize = 9;
+/// Floats per pixel result (`PIXEL_RESULT_FLOATS`).
+const PIXEL_RESULT_FLOATS: usize = 8;
 
 struct Pipelines {
-    train: Pipeline,
-    render: Pipeline,
+    sample_forward: Pipeline,
+    ray_train: Pipeline,
+    sample_backward: Pipeline,
+    ray_render: Pipeline,
+    pixel_rays: Pipeline,
+    pixel_train: Pipeline,
     adam: Pipeline,
     sdf: Pipeline,
     color: Pipeline,
@@ -54,9 +81,17 @@ pub struct VulkanBackend {
     max_binding: u64,
     model_words: Buffer,
     groups: [GroupBuffers; NUM_GROUPS],
-    /// Per-batch inputs and outputs (host-visible, grown on demand).
+    /// Per-batch inputs and outputs (host-visible, grown on demand): rays (or query points),
+    /// per-item results, sampled pixels, the mapping window's words.
     input: Option<Buffer>,
     output: Option<Buffer>,
+    pixels: Option<Buffer>,
+    window: Option<Buffer>,
+    /// Per-sample records of the current batch (device-local, grown on demand).
+    samples: Option<Buffer>,
+    /// The image slots (device-local, allocated by [`VulkanBackend::with_images`]).
+    images: Buffer,
+    store: ImageStore,
     /// Staging for device-local buffers that are not host-visible.
     staging: Option<Buffer>,
     pipelines: Pipelines,
@@ -79,6 +114,17 @@ fn ensure<'b>(
     bytes: u64,
     what: &str,
 ) -> Result<&'b mut Buffer, VulkanError> {
+    ensure_in(gpu, slot, bytes, Memory::Host, what)
+}
+
+/// Makes sure `slot` holds a buffer of at least `bytes` in `memory`.
+fn ensure_in<'b>(
+    gpu: &Gpu,
+    slot: &'b mut Option<Buffer>,
+    bytes: u64,
+    memory: Memory,
+    what: &str,
+) -> Result<&'b mut Buffer, VulkanError> {
     let grow = match slot {
         Some(b) => b.size() < bytes,
         None => true,
@@ -88,7 +134,7 @@ fn ensure<'b>(
         *slot = Some(Buffer::new(
             gpu.device(),
             bytes.next_power_of_two(),
-            Memory::Host,
+            memory,
             what,
         )?);
     }
@@ -103,7 +149,18 @@ fn upload(
     dst: &mut Buffer,
     data: &[u8],
 ) -> Result<(), VulkanError> {
-    if dst.write_mapped(0, data) {
+    upload_at(gpu, staging, dst, 0, data)
+}
+
+/// Writes `data` at byte `offset` of `dst` (through `staging` when `dst` is not mapped).
+fn upload_at(
+    gpu: &mut Gpu,
+    staging: &mut Option<Buffer>,
+    dst: &mut Buffer,
+    offset: u64,
+    data: &[u8],
+) -> Result<(), VulkanError> {
+    if dst.write_mapped(offset, data) {
         return Ok(());
     }
     let st = ensure(gpu, staging, data.len() as u64, "a staging buffer")?;
@@ -111,7 +168,7 @@ fn upload(
     let (st, dst): (&Buffer, &Buffer) = (st, dst);
     let n = data.len() as u64;
     gpu.submit(|r| {
-        r.copy(st, 0, dst, 0, n);
+        r.copy(st, 0, dst, offset, n);
         Ok(())
     })
 }
@@ -202,8 +259,12 @@ impl VulkanBackend {
         let mut gpu = Gpu::new(&device)?;
         let module = ShaderModule::new(&device, &crate::shader_words())?;
         let pipelines = Pipelines {
-            train: Pipeline::new(&device, &module, entry::TRAIN_RAY, 13, 32)?,
-            render: Pipeline::new(&device, &module, entry::RENDER_RAY, 8, 16)?,
+            sample_forward: Pipeline::new(&device, &module, entry::SAMPLE_FORWARD, 8, 16)?,
+            ray_train: Pipeline::new(&device, &module, entry::RAY_TRAIN, 6, 32)?,
+            sample_backward: Pipeline::new(&device, &module, entry::SAMPLE_BACKWARD, 13, 16)?,
+            ray_render: Pipeline::new(&device, &module, entry::RAY_RENDER, 5, 16)?,
+            pixel_rays: Pipeline::new(&device, &module, entry::PIXEL_RAYS, 4, 16)?,
+            pixel_train: Pipeline::new(&device, &module, entry::PIXEL_TRAIN, 9, 16)?,
             adam: Pipeline::new(&device, &module, entry::ADAM, 4, 32)?,
             sdf: Pipeline::new(&device, &module, entry::SDF_QUERY, 8, 16)?,
             color: Pipeline::new(&device, &module, entry::COLOR_QUERY, 8, 16)?,
@@ -259,6 +320,11 @@ impl VulkanBackend {
             groups,
             input: None,
             output: None,
+            pixels: None,
+            window: None,
+            samples: None,
+            images: Buffer::new(&device, 16, Memory::Device, "the image slots")?,
+            store: ImageStore::default(),
             staging,
             pipelines,
             _module: module,
@@ -393,8 +459,46 @@ impl VulkanBackend {
         Ok(())
     }
 
-    /// Uploads rays and makes room for their results.
-    fn stage_rays(&mut self, rays: &[Ray]) -> Result<(), VulkanError> {
+    /// Allocates `store.slots` image slots of `store.width` x `store.height` RGBA8 pixels for
+    /// the mapping window (device-local, zeroed), replacing any previous store.
+    pub fn with_images(mut self, store: ImageStore) -> Result<Self, VulkanError> {
+        let bytes = store.total_len() as u64 * 4;
+        self.check_binding("the image slots", bytes)?;
+        self.images = Buffer::new(self.gpu.device(), bytes, Memory::Device, "the image slots")?;
+        {
+            let img: &Buffer = &self.images;
+            self.gpu.submit(|r| {
+                r.zero(img);
+                Ok(())
+            })?;
+        }
+        self.store = store;
+        Ok(self)
+    }
+
+    /// Samples per ray of the layout (`config.samples`, 1..=MAX_SAMPLES), as the shaders.
+    fn samples_per_ray(&self) -> usize {
+        (self.layout.config.samples as usize).clamp(1, MAX_SAMPLES)
+    }
+
+    /// Makes room for the sample records of `rays` rays.
+    fn stage_samples(&mut self, rays: usize) -> Result<usize, VulkanError> {
+        let records = rays * self.samples_per_ray();
+        let bytes = (records * SAMPLE_FLOATS * 4) as u64;
+        self.check_binding("the sample records of a batch", bytes)?;
+        ensure_in(
+            &self.gpu,
+            &mut self.samples,
+            bytes,
+            Memory::Device,
+            "sample records",
+        )?;
+        Ok(records)
+    }
+
+    /// Uploads rays and makes room for their results and sample records; returns the number of
+    /// sample records.
+    fn stage_rays(&mut self, rays: &[Ray]) -> Result<usize, VulkanError> {
         let n = rays.len();
         self.check_binding("the rays of a batch", (n * RAY_FLOATS * 4) as u64)?;
         let mut flat = Vec::with_capacity(n * RAY_FLOATS);
@@ -417,19 +521,25 @@ impl VulkanBackend {
             (n * RESULT_FLOATS * 4) as u64,
             "ray results",
         )?;
-        Ok(())
+        self.stage_samples(n)
     }
 
-    fn read_results(&self, results: &mut [RayResult]) {
-        let Some(out) = &self.output else { return };
-        let mut bytes = vec![0u8; results.len() * RESULT_FLOATS * 4];
+    fn read_floats(&self, len: usize) -> Vec<f32> {
+        let Some(out) = &self.output else {
+            return vec![0.0; len];
+        };
+        let mut bytes = vec![0u8; len * 4];
         out.read_mapped(0, &mut bytes);
-        let f: Vec<f32> = bytes
+        bytes
             .as_chunks::<4>()
             .0
             .iter()
             .map(|b| f32::from_le_bytes(*b))
-            .collect();
+            .collect()
+    }
+
+    fn read_results(&self, results: &mut [RayResult]) {
+        let f = self.read_floats(results.len() * RESULT_FLOATS);
         for (r, v) in results.iter_mut().zip(f.as_chunks::<RESULT_FLOATS>().0) {
             *r = RayResult {
                 color: [v[0], v[1], v[2]],
@@ -439,6 +549,109 @@ impl VulkanBackend {
             };
         }
     }
+
+    fn adam_steps(&mut self) -> [AdamStep; NUM_GROUPS] {
+        self.t += 1;
+        core::array::from_fn(|g| AdamStep::new(&self.adam[g], self.t))
+    }
+}
+
+/// Records `adam_cs` for every group.
+fn record_adam<'a>(
+    r: &mut crate::raw::Recorder<'a>,
+    pipeline: &'a Pipeline,
+    groups: &'a [GroupBuffers; NUM_GROUPS],
+    steps: &[AdamStep; NUM_GROUPS],
+    max_groups: u32,
+) -> Result<(), VulkanError> {
+    for (g, s) in groups.iter().zip(steps.iter()) {
+        let set = r.bind(pipeline, &[&g.params, &g.m, &g.v, &g.grad])?;
+        for (first, count, wg) in chunks(g.len, max_groups) {
+            let p = push_bytes([
+                count,
+                first,
+                s.lr.to_bits(),
+                s.beta1.to_bits(),
+                s.beta2.to_bits(),
+                s.eps.to_bits(),
+                s.bias_correction1.to_bits(),
+                s.bias_correction2.to_bits(),
+            ]);
+            r.dispatch(pipeline, &set, &p, wg);
+        }
+    }
+    Ok(())
+}
+
+/// Records pass 1 (`sample_forward_cs`) over `records` sample records of the rays in `rays`.
+#[allow(clippy::too_many_arguments)]
+fn record_sample_forward<'a>(
+    r: &mut crate::raw::Recorder<'a>,
+    pipeline: &'a Pipeline,
+    model_words: &'a Buffer,
+    groups: &'a [GroupBuffers; NUM_GROUPS],
+    rays: &'a Buffer,
+    samples: &'a Buffer,
+    records: usize,
+    seed: u32,
+    jitter: bool,
+    max_groups: u32,
+) -> Result<(), VulkanError> {
+    let set = r.bind(
+        pipeline,
+        &[
+            model_words,
+            &groups[0].params,
+            &groups[1].params,
+            &groups[2].params,
+            &groups[3].params,
+            &groups[4].params,
+            rays,
+            samples,
+        ],
+    )?;
+    for (first, count, wg) in chunks(records, max_groups) {
+        let p = push_bytes([count, first, seed, jitter as u32, 0, 0, 0, 0]);
+        r.dispatch(pipeline, &set, &p[..16], wg);
+    }
+    Ok(())
+}
+
+/// Records pass 3 (`sample_backward_cs`) over `records` sample records.
+#[allow(clippy::too_many_arguments)]
+fn record_sample_backward<'a>(
+    r: &mut crate::raw::Recorder<'a>,
+    pipeline: &'a Pipeline,
+    model_words: &'a Buffer,
+    groups: &'a [GroupBuffers; NUM_GROUPS],
+    rays: &'a Buffer,
+    samples: &'a Buffer,
+    records: usize,
+    max_groups: u32,
+) -> Result<(), VulkanError> {
+    let set = r.bind(
+        pipeline,
+        &[
+            model_words,
+            &groups[0].params,
+            &groups[1].params,
+            &groups[2].params,
+            &groups[3].params,
+            &groups[4].params,
+            &groups[0].grad,
+            &groups[1].grad,
+            &groups[2].grad,
+            &groups[3].grad,
+            &groups[4].grad,
+            rays,
+            samples,
+        ],
+    )?;
+    for (first, count, wg) in chunks(records, max_groups) {
+        let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
+        r.dispatch(pipeline, &set, &p[..16], wg);
+    }
+    Ok(())
 }
 
 impl Backend for VulkanBackend {
@@ -459,10 +672,8 @@ impl Backend for VulkanBackend {
         results: &mut [RayResult],
     ) -> Result<StepStats, VulkanError> {
         check_len("results", results.len(), rays.len())?;
-        self.stage_rays(rays)?;
-        self.t += 1;
-        let steps: [AdamStep; NUM_GROUPS] =
-            core::array::from_fn(|g| AdamStep::new(&self.adam[g], self.t));
+        let records = self.stage_rays(rays)?;
+        let steps = self.adam_steps();
         let n = rays.len();
         let train_push = |first: u32, count: u32| {
             push_bytes([
@@ -482,11 +693,14 @@ impl Backend for VulkanBackend {
             model_words,
             input,
             output,
+            samples,
             pipelines,
             max_groups,
             ..
         } = self;
-        let (Some(input), Some(output)) = (input.as_ref(), output.as_ref()) else {
+        let (Some(input), Some(output), Some(samples)) =
+            (input.as_ref(), output.as_ref(), samples.as_ref())
+        else {
             return Err(VulkanError::Unsupported("buffer allocation"));
         };
         let max_groups = *max_groups;
@@ -496,46 +710,47 @@ impl Backend for VulkanBackend {
             }
             r.barrier();
             if n > 0 {
+                record_sample_forward(
+                    r,
+                    &pipelines.sample_forward,
+                    model_words,
+                    groups,
+                    input,
+                    samples,
+                    records,
+                    loss.seed,
+                    true,
+                    max_groups,
+                )?;
+                r.barrier();
                 let set = r.bind(
-                    &pipelines.train,
+                    &pipelines.ray_train,
                     &[
                         model_words,
-                        &groups[0].params,
-                        &groups[1].params,
-                        &groups[2].params,
-                        &groups[3].params,
                         &groups[4].params,
-                        &groups[0].grad,
-                        &groups[1].grad,
-                        &groups[2].grad,
-                        &groups[3].grad,
                         &groups[4].grad,
                         input,
+                        samples,
                         output,
                     ],
                 )?;
                 for (first, count, wg) in chunks(n, max_groups) {
-                    r.dispatch(&pipelines.train, &set, &train_push(first, count), wg);
+                    r.dispatch(&pipelines.ray_train, &set, &train_push(first, count), wg);
                 }
                 r.barrier();
+                record_sample_backward(
+                    r,
+                    &pipelines.sample_backward,
+                    model_words,
+                    groups,
+                    input,
+                    samples,
+                    records,
+                    max_groups,
+                )?;
+                r.barrier();
             }
-            for (g, s) in groups.iter().zip(steps.iter()) {
-                let set = r.bind(&pipelines.adam, &[&g.params, &g.m, &g.v, &g.grad])?;
-                for (first, count, wg) in chunks(g.len, max_groups) {
-                    let p = push_bytes([
-                        count,
-                        first,
-                        s.lr.to_bits(),
-                        s.beta1.to_bits(),
-                        s.beta2.to_bits(),
-                        s.eps.to_bits(),
-                        s.bias_correction1.to_bits(),
-                        s.bias_correction2.to_bits(),
-                    ]);
-                    r.dispatch(&pipelines.adam, &set, &p, wg);
-                }
-            }
-            Ok(())
+            record_adam(r, &pipelines.adam, groups, &steps, max_groups)
         })?;
         self.read_results(results);
         Ok(summarize(results, self.t))
@@ -546,7 +761,7 @@ impl Backend for VulkanBackend {
         if rays.is_empty() {
             return Ok(());
         }
-        self.stage_rays(rays)?;
+        let records = self.stage_rays(rays)?;
         let n = rays.len();
         let Self {
             gpu,
@@ -554,31 +769,38 @@ impl Backend for VulkanBackend {
             model_words,
             input,
             output,
+            samples,
             pipelines,
             max_groups,
             ..
         } = self;
-        let (Some(input), Some(output)) = (input.as_ref(), output.as_ref()) else {
+        let (Some(input), Some(output), Some(samples)) =
+            (input.as_ref(), output.as_ref(), samples.as_ref())
+        else {
             return Err(VulkanError::Unsupported("buffer allocation"));
         };
         let max_groups = *max_groups;
         gpu.submit(|r| {
+            record_sample_forward(
+                r,
+                &pipelines.sample_forward,
+                model_words,
+                groups,
+                input,
+                samples,
+                records,
+                0,
+                false,
+                max_groups,
+            )?;
+            r.barrier();
             let set = r.bind(
-                &pipelines.render,
-                &[
-                    model_words,
-                    &groups[0].params,
-                    &groups[1].params,
-                    &groups[2].params,
-                    &groups[3].params,
-                    &groups[4].params,
-                    input,
-                    output,
-                ],
+                &pipelines.ray_render,
+                &[model_words, &groups[4].params, input, samples, output],
             )?;
             for (first, count, wg) in chunks(n, max_groups) {
                 let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
-                r.dispatch(&pipelines.render, &set, &p[..16], wg);
+                r.dispatch(&pipelines.ray_render, &set, &p[..16], wg);
             }
             Ok(())
         })?;
@@ -634,19 +856,180 @@ impl Backend for VulkanBackend {
     }
 
     fn image_store(&self) -> ImageStore {
-        ImageStore::default()
+        self.store
     }
 
-    fn upload_frame(&mut self, _slot: u32, _rgba: &[u32]) -> Result<(), VulkanError> {
-        Err(VulkanError::Unsupported("frame images (upload_frame)"))
+    fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), VulkanError> {
+        let n = self.store.slot_len();
+        check_len("frame pixels", rgba.len(), n)?;
+        if slot >= self.store.slots {
+            return Err(himap_core::Error::Capacity {
+                what: "image slot index",
+                needed: slot as u64 + 1,
+                capacity: self.store.slots as u64,
+            }
+            .into());
+        }
+        upload_at(
+            &mut self.gpu,
+            &mut self.staging,
+            &mut self.images,
+            (slot as usize * n * 4) as u64,
+            &u32_bytes(rgba),
+        )
     }
 
     fn map_step(
         &mut self,
-        _batch: &MapBatch<'_>,
-        _results: &mut [PixelResult],
+        batch: &MapBatch<'_>,
+        results: &mut [PixelResult],
     ) -> Result<StepStats, VulkanError> {
-        Err(VulkanError::Unsupported("the mapping step (map_step)"))
+        check_len("results", results.len(), batch.pixels.len())?;
+        let slots = window_slots(batch, &self.store)?;
+        let n = batch.pixels.len();
+        let frames = batch.poses.len();
+        let mut w = vec![0u32; words::WINDOW];
+        words::window_to_words(
+            &batch.k,
+            (self.store.width, self.store.height),
+            &slots[..frames],
+            batch.poses,
+            &batch.loss,
+            &mut w,
+        );
+        ensure(
+            &self.gpu,
+            &mut self.window,
+            (words::WINDOW * 4) as u64,
+            "the mapping window",
+        )?
+        .write_mapped(0, &u32_bytes(&w));
+        self.check_binding("the pixels of a batch", (n * 12) as u64)?;
+        let flat: Vec<u32> = batch
+            .pixels
+            .iter()
+            .flat_map(|p| [p.frame, p.u, p.v])
+            .collect();
+        ensure(&self.gpu, &mut self.pixels, (n * 12) as u64, "pixels")?
+            .write_mapped(0, &u32_bytes(&flat));
+        self.check_binding("the rays of a batch", (n * RAY_FLOATS * 4) as u64)?;
+        ensure(
+            &self.gpu,
+            &mut self.input,
+            (n * RAY_FLOATS * 4) as u64,
+            "pixel rays",
+        )?;
+        self.check_binding(
+            "the pixel results of a batch",
+            (n * PIXEL_RESULT_FLOATS * 4) as u64,
+        )?;
+        ensure(
+            &self.gpu,
+            &mut self.output,
+            (n * PIXEL_RESULT_FLOATS * 4) as u64,
+            "pixel results",
+        )?;
+        let records = self.stage_samples(n)?;
+        let steps = self.adam_steps();
+        let seed = batch.loss.seed;
+        let Self {
+            gpu,
+            groups,
+            model_words,
+            input,
+            output,
+            samples,
+            pixels,
+            window,
+            images,
+            pipelines,
+            max_groups,
+            ..
+        } = self;
+        let (Some(input), Some(output), Some(samples), Some(pixels), Some(window)) = (
+            input.as_ref(),
+            output.as_ref(),
+            samples.as_ref(),
+            pixels.as_ref(),
+            window.as_ref(),
+        ) else {
+            return Err(VulkanError::Unsupported("buffer allocation"));
+        };
+        let images: &Buffer = images;
+        let max_groups = *max_groups;
+        gpu.submit(|r| {
+            for g in groups.iter() {
+                r.zero(&g.grad);
+            }
+            r.barrier();
+            if n > 0 {
+                let set = r.bind(&pipelines.pixel_rays, &[window, pixels, images, input])?;
+                for (first, count, wg) in chunks(n, max_groups) {
+                    let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
+                    r.dispatch(&pipelines.pixel_rays, &set, &p[..16], wg);
+                }
+                r.barrier();
+                record_sample_forward(
+                    r,
+                    &pipelines.sample_forward,
+                    model_words,
+                    groups,
+                    input,
+                    samples,
+                    records,
+                    seed,
+                    true,
+                    max_groups,
+                )?;
+                r.barrier();
+                let set = r.bind(
+                    &pipelines.pixel_train,
+                    &[
+                        model_words,
+                        &groups[4].params,
+                        &groups[4].grad,
+                        window,
+                        pixels,
+                        images,
+                        input,
+                        samples,
+                        output,
+                    ],
+                )?;
+                for (first, count, wg) in chunks(n, max_groups) {
+                    let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
+                    r.dispatch(&pipelines.pixel_train, &set, &p[..16], wg);
+                }
+                r.barrier();
+                record_sample_backward(
+                    r,
+                    &pipelines.sample_backward,
+                    model_words,
+                    groups,
+                    input,
+                    samples,
+                    records,
+                    max_groups,
+                )?;
+                r.barrier();
+            }
+            record_adam(r, &pipelines.adam, groups, &steps, max_groups)
+        })?;
+        let f = self.read_floats(n * PIXEL_RESULT_FLOATS);
+        for (r, v) in results
+            .iter_mut()
+            .zip(f.as_chunks::<PIXEL_RESULT_FLOATS>().0)
+        {
+            *r = PixelResult {
+                color: [v[0], v[1], v[2]],
+                depth: v[3],
+                opacity: v[4],
+                color_loss: v[5],
+                warp_loss: v[6],
+                warp_views: v[7] as u32,
+            };
+        }
+        Ok(summarize_pixels(results, self.t))
     }
 
     fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), VulkanError> {

@@ -38,8 +38,12 @@ pub mod entry {
     pub const FIXED_ACCUMULATE: &str = "fixed_accumulate_cs";
     pub const MLP_FORWARD: &str = "mlp_forward_cs";
     pub const GRID_FORWARD: &str = "grid_forward_cs";
-    pub const TRAIN_RAY: &str = "train_ray_cs";
-    pub const RENDER_RAY: &str = "render_ray_cs";
+    pub const SAMPLE_FORWARD: &str = "sample_forward_cs";
+    pub const RAY_TRAIN: &str = "ray_train_cs";
+    pub const SAMPLE_BACKWARD: &str = "sample_backward_cs";
+    pub const RAY_RENDER: &str = "ray_render_cs";
+    pub const PIXEL_RAYS: &str = "pixel_rays_cs";
+    pub const PIXEL_TRAIN: &str = "pixel_train_cs";
     pub const ADAM: &str = "adam_cs";
     pub const SDF_QUERY: &str = "sdf_query_cs";
     pub const COLOR_QUERY: &str = "color_query_cs";
@@ -96,8 +100,12 @@ mod tests {
             entry::FIXED_ACCUMULATE,
             entry::MLP_FORWARD,
             entry::GRID_FORWARD,
-            entry::TRAIN_RAY,
-            entry::RENDER_RAY,
+            entry::SAMPLE_FORWARD,
+            entry::RAY_TRAIN,
+            entry::SAMPLE_BACKWARD,
+            entry::RAY_RENDER,
+            entry::PIXEL_RAYS,
+            entry::PIXEL_TRAIN,
             entry::ADAM,
             entry::SDF_QUERY,
             entry::COLOR_QUERY,
