@@ -64,20 +64,20 @@ pub fn configs() -> Vec<(&'static str, ModelConfig)> {
     ]
 }
 
-/// Measures the multi-threaded CPU backend with `threads` threads (0 = all cores).
-pub fn bench_cpu(
-    name: &str,
+/// Times `steps` renders (forward) and `steps` training steps (forward + backward + Adam) of
+/// `rays` rays on `be`, after one warm-up of each.
+fn measure<B: Backend>(
+    be: &mut B,
     cfg: &ModelConfig,
-    threads: usize,
     rays: usize,
     steps: usize,
-) -> anyhow::Result<BenchRow> {
-    let layout = ModelLayout::new(cfg)?;
-    let data = ModelData::new(layout, 1)?;
-    let mut be = ParallelCpuBackend::new(data, paper_adam(), threads)?;
+) -> anyhow::Result<(f64, f64)>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let steps = steps.max(1);
     let batch = rays_in(&cfg.aabb, rays, 7);
     let mut res = vec![RayResult::default(); rays];
-    let samples = (rays * cfg.samples as usize) as f64;
     be.render(&batch, &mut res)?; // warm-up
     let t = Instant::now();
     for _ in 0..steps {
@@ -100,24 +100,116 @@ pub fn bench_cpu(
         };
         be.train_step(&batch, &l, &mut res)?;
     }
-    let train = t.elapsed().as_secs_f64() / steps as f64;
+    Ok((fwd, t.elapsed().as_secs_f64() / steps as f64))
+}
+
+fn row(
+    backend: &str,
+    name: &str,
+    cfg: &ModelConfig,
+    layout: &ModelLayout,
+    rays: usize,
+    extra_bytes: usize,
+    (fwd, train): (f64, f64),
+) -> BenchRow {
     let p = layout.param_count();
-    Ok(BenchRow {
-        backend: be.name().to_string(),
+    let samples = (rays * cfg.samples as usize) as f64;
+    BenchRow {
+        backend: backend.to_string(),
         config: name.to_string(),
         params: p,
-        state_bytes: p * (3 * 4 + 8),
+        state_bytes: p * (3 * 4 + 8) + extra_bytes,
         rays,
         samples_per_ray: cfg.samples,
         forward_samples_per_s: samples / fwd,
         train_samples_per_s: samples / train,
         train_ms_per_step: train * 1e3,
-    })
+    }
 }
 
-/// Prints a table row.
-pub fn print_row(r: &BenchRow) {
-    println!(
+/// Measures the multi-threaded CPU backend with `threads` threads (0 = all cores).
+pub fn bench_cpu(
+    name: &str,
+    cfg: &ModelConfig,
+    threads: usize,
+    rays: usize,
+    steps: usize,
+) -> anyhow::Result<BenchRow> {
+    let layout = ModelLayout::new(cfg)?;
+    let data = ModelData::new(layout, 1)?;
+    let mut be = ParallelCpuBackend::new(data, paper_adam(), threads)?;
+    let t = measure(&mut be, cfg, rays, steps)?;
+    Ok(row(be.name(), name, cfg, &layout, rays, 0, t))
+}
+
+/// Measures the Vulkan backend on the selected device. The memory column adds the per-batch
+/// device buffers (rays, results, sample records) to the model state.
+pub fn bench_vulkan(
+    name: &str,
+    cfg: &ModelConfig,
+    rays: usize,
+    steps: usize,
+) -> anyhow::Result<BenchRow> {
+    let layout = ModelLayout::new(cfg)?;
+    let data = ModelData::new(layout, 1)?;
+    let p = &data.params;
+    let mut be = himap_vulkan::VulkanBackend::new(
+        layout,
+        [&p[0], &p[1], &p[2], &p[3], &p[4]],
+        paper_adam(),
+    )?;
+    let t = measure(&mut be, cfg, rays, steps)?;
+    let batch_bytes = rays * (10 + 6) * 4 + rays * cfg.samples as usize * 9 * 4;
+    Ok(row(be.name(), name, cfg, &layout, rays, batch_bytes, t))
+}
+
+/// What `himap bench` measures.
+#[derive(Clone, Debug)]
+pub struct BenchOptions {
+    pub rays: usize,
+    pub steps: usize,
+    /// `cpu`, `vulkan` or `all`.
+    pub backends: String,
+    /// `small`, `paper` or `all`.
+    pub configs: String,
+    /// CPU threads (0 = all cores).
+    pub threads: usize,
+}
+
+/// Runs the benchmark and prints the table to `out`. A backend that cannot start (no Vulkan
+/// device) is reported in a line and skipped.
+pub fn run_bench(opts: &BenchOptions, out: &mut dyn std::io::Write) -> anyhow::Result<()> {
+    let want_cpu = matches!(opts.backends.as_str(), "cpu" | "all");
+    let want_vk = matches!(opts.backends.as_str(), "vulkan" | "all");
+    if !want_cpu && !want_vk {
+        anyhow::bail!("--backend must be cpu, vulkan or all");
+    }
+    if !matches!(opts.configs.as_str(), "small" | "paper" | "all") {
+        anyhow::bail!("--config must be small, paper or all");
+    }
+    writeln!(out, "{}", header())?;
+    for (name, cfg) in configs() {
+        if opts.configs != "all" && !name.starts_with(opts.configs.as_str()) {
+            continue;
+        }
+        if want_cpu {
+            let r = bench_cpu(name, &cfg, opts.threads, opts.rays, opts.steps)?;
+            writeln!(out, "{}", format_row(&r))?;
+        }
+        if want_vk {
+            match bench_vulkan(name, &cfg, opts.rays, opts.steps) {
+                Ok(r) => writeln!(out, "{}", format_row(&r))?,
+                Err(e) => writeln!(out, "vulkan: skipped ({e:#})")?,
+            }
+        }
+        out.flush()?;
+    }
+    Ok(())
+}
+
+/// One table row.
+pub fn format_row(r: &BenchRow) -> String {
+    format!(
         "{:<22} {:<22} {:>10} {:>9.1} MB {:>6} x {:<3} {:>12.0} {:>12.0} {:>10.1}",
         r.backend,
         r.config,
@@ -128,13 +220,20 @@ pub fn print_row(r: &BenchRow) {
         r.forward_samples_per_s,
         r.train_samples_per_s,
         r.train_ms_per_step
-    );
+    )
 }
 
-/// Prints the table header.
-pub fn print_header() {
-    println!(
+/// The table header.
+pub fn header() -> String {
+    format!(
         "{:<22} {:<22} {:>10} {:>12} {:>12} {:>12} {:>12} {:>10}",
-        "backend", "config", "params", "state", "rays x spr", "fwd smp/s", "train smp/s", "ms/step"
-    );
+        "backend",
+        "config",
+        "params",
+        "memory",
+        "rays x spr",
+        "fwd smp/s",
+        "train smp/s",
+        "ms/step"
+    )
 }

@@ -12,4 +12,5 @@ pub mod bench;
 pub mod config;
 pub mod dump;
 pub mod mapper_cli;
+pub mod select;
 pub mod train_demo;

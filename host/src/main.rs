@@ -32,8 +32,9 @@ enum Command {
         /// Preset: small (2-core CPU) or paper.
         #[arg(long, default_value = "small")]
         preset: String,
-        /// Backend: cpu (multi-threaded).
-        #[arg(long, default_value = "cpu")]
+        /// Backend: cpu (multi-threaded), vulkan, or auto (a Vulkan GPU when one is usable,
+        /// else the CPU; it says which it chose).
+        #[arg(long, default_value = "auto")]
         backend: String,
         /// Frame selection start:end:stride over the source frames (e.g. 0:100:2).
         #[arg(long)]
@@ -63,6 +64,30 @@ enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
         /// Worker threads (0 = all cores).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Backend: cpu, vulkan or auto.
+        #[arg(long, default_value = "auto")]
+        backend: String,
+    },
+    /// List the Vulkan devices with their limits and the features the backend needs.
+    Devices,
+    /// Throughput of each backend present: forward and forward+backward samples/s, ms per
+    /// training step at the small and the paper configuration, memory used.
+    Bench {
+        /// Rays per step.
+        #[arg(long, default_value_t = 2048)]
+        rays: usize,
+        /// Timed steps per measurement (after one warm-up step).
+        #[arg(long, default_value_t = 3)]
+        steps: usize,
+        /// Backends to measure: cpu, vulkan or all.
+        #[arg(long, default_value = "all")]
+        backend: String,
+        /// Configurations: small, paper or all.
+        #[arg(long, default_value = "all")]
+        config: String,
+        /// CPU worker threads (0 = all cores).
         #[arg(long, default_value_t = 0)]
         threads: usize,
     },
@@ -219,9 +244,7 @@ fn main() -> anyhow::Result<()> {
                 print!("{}", cfg.to_toml());
                 return Ok(());
             }
-            if backend != "cpu" {
-                anyhow::bail!("unknown backend '{backend}': this build has cpu");
-            }
+            backend.parse::<himap::select::BackendChoice>()?;
             let (start, end, stride) = match &frames {
                 Some(f) => parse_frames(f)?,
                 None => (0, None, 1),
@@ -236,6 +259,7 @@ fn main() -> anyhow::Result<()> {
                 stride,
                 resize,
                 threads,
+                backend,
                 progress: true,
             };
             let s = himap::mapper_cli::run_map(&opts)?;
@@ -248,7 +272,9 @@ fn main() -> anyhow::Result<()> {
             size,
             config,
             threads,
+            backend,
         } => {
+            backend.parse::<himap::select::BackendChoice>()?;
             let cfg = match &config {
                 Some(p) => himap::config::Config::from_file(p)?,
                 None => himap::config::Config::small(),
@@ -258,10 +284,42 @@ fn main() -> anyhow::Result<()> {
                 "synthesising a {frames}-frame {}x{} room and mapping it with the small preset",
                 size.0, size.1
             );
-            let (s, dir) =
-                himap::mapper_cli::run_demo(out.as_deref(), cfg, frames, size, threads, true)?;
+            let (s, dir) = himap::mapper_cli::run_demo(
+                out.as_deref(),
+                cfg,
+                frames,
+                size,
+                threads,
+                &backend,
+                true,
+            )?;
             println!("{}", himap::mapper_cli::summary_table(&s));
             println!("outputs in {}", dir.display());
+        }
+        Command::Devices => {
+            print!("{}", himap_vulkan::describe_devices());
+            let d = himap::select::decide(himap::select::BackendChoice::Auto);
+            println!(
+                "--backend auto would use: {}",
+                if d.vulkan { "vulkan" } else { "cpu" }
+            );
+            println!("  ({})", d.reason);
+        }
+        Command::Bench {
+            rays,
+            steps,
+            backend,
+            config,
+            threads,
+        } => {
+            let opts = himap::bench::BenchOptions {
+                rays,
+                steps,
+                backends: backend,
+                configs: config,
+                threads,
+            };
+            himap::bench::run_bench(&opts, &mut std::io::stdout())?;
         }
         Command::TrainDemo {
             steps,

@@ -28,6 +28,7 @@ use serde::Serialize;
 use crate::backend::{ModelData, ParallelCpuBackend};
 use crate::config::Config;
 use crate::dataset::{self, LoadOptions, RgbImage};
+use crate::select::{decide, BackendChoice, MapBackend};
 
 /// Options of [`run_map`].
 #[derive(Clone, Debug)]
@@ -42,6 +43,8 @@ pub struct MapOptions {
     pub resize: Option<(u32, u32)>,
     /// Worker threads (0 = all cores).
     pub threads: usize,
+    /// `cpu`, `vulkan` or `auto` (see [`crate::select`]).
+    pub backend: String,
     /// Show a progress bar.
     pub progress: bool,
 }
@@ -324,8 +327,68 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     std::fs::create_dir_all(opts.out.join("renders"))
         .with_context(|| format!("creating {}", opts.out.display()))?;
 
-    let backend = build_backend(cfg, aabb, &k, opts.threads)?;
-    let backend_name = backend.name().to_string();
+    let choice: BackendChoice = opts.backend.parse()?;
+    let decision = decide(choice);
+    if opts.progress {
+        eprintln!("backend: {}", decision.reason);
+    }
+    let mc = cfg.model_config(aabb)?;
+    let layout = ModelLayout::new(&mc).map_err(|e| anyhow::anyhow!("model: {e}"))?;
+    let data =
+        ModelData::new(layout, cfg.seed as u32).map_err(|e| anyhow::anyhow!("model init: {e}"))?;
+    let store = ImageStore {
+        width: k.width,
+        height: k.height,
+        slots: cfg.mapper_config()?.slots_needed(),
+    };
+    let ctx = RunContext {
+        t_start,
+        k,
+        aabb,
+        box_src,
+        reason: decision.reason.clone(),
+    };
+    if decision.vulkan {
+        let backend = crate::select::vulkan_backend(&data, cfg.adam_config(), store)
+            .map_err(|e| anyhow::anyhow!("{e}"))
+            .context("starting the Vulkan backend (--backend cpu runs without a GPU)")?;
+        map_with(opts, ds.as_ref(), ctx, backend)
+    } else {
+        let backend =
+            ParallelCpuBackend::new(data, cfg.adam_config(), opts.threads)?.with_images(store);
+        map_with(opts, ds.as_ref(), ctx, backend)
+    }
+}
+
+/// What [`run_map`] computed before choosing the backend.
+struct RunContext {
+    t_start: Instant,
+    k: Intrinsics,
+    aabb: Aabb,
+    box_src: &'static str,
+    reason: String,
+}
+
+/// The mapping loop, evaluation and outputs of [`run_map`] on one backend.
+fn map_with<B: MapBackend>(
+    opts: &MapOptions,
+    ds: &dyn crate::dataset::Dataset,
+    ctx: RunContext,
+    backend: B,
+) -> anyhow::Result<MapSummary>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let RunContext {
+        t_start,
+        k,
+        aabb,
+        box_src,
+        reason,
+    } = ctx;
+    let cfg = &opts.config;
+    let n = ds.len();
+    let backend_name = format!("{} ({reason})", backend.name());
     let threads = backend.threads();
     let params = backend.layout().param_count();
     let mcfg = cfg.mapper_config()?;
@@ -364,7 +427,7 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     let mut last_psnr = f64::NAN;
     let mut last_frame: Option<crate::dataset::Frame> = None;
 
-    let handle = |mapper: &mut Mapper<'_, ParallelCpuBackend>,
+    let handle = |mapper: &mut Mapper<'_, B>,
                   report: UpdateReport,
                   frame: &crate::dataset::Frame,
                   seconds: f64,
@@ -504,21 +567,30 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     csv.flush()?;
 
     // mesh
-    let backend = mapper.into_backend();
+    let backend = std::cell::RefCell::new(mapper.into_backend());
+    let query_error = std::cell::RefCell::new(None::<anyhow::Error>);
     let mesh = crate::mesh::extract_mesh(
         aabb,
         cfg.eval.mesh_resolution,
         |p: &[[f32; 3]]| {
             let mut o = vec![0.0; p.len()];
-            backend.sdf(p, &mut o);
+            if let Err(e) = backend.borrow_mut().query_sdf(p, &mut o) {
+                query_error.borrow_mut().get_or_insert(e);
+            }
             o
         },
         Some(|p: &[[f32; 3]]| {
             let mut o = vec![[0.0; 3]; p.len()];
-            backend.color(p, &mut o);
+            if let Err(e) = backend.borrow_mut().query_color(p, &mut o) {
+                query_error.borrow_mut().get_or_insert(e);
+            }
             o
         }),
     );
+    if let Some(e) = query_error.into_inner() {
+        return Err(e.context("querying the field for the mesh"));
+    }
+    let mut backend = backend.into_inner();
     let mesh_path = opts.out.join("mesh.ply");
     mesh.write_ply(&mesh_path)?;
     let has_gt = opts.dataset.join("gt_mesh.ply").is_file() || ds.has_depth();
@@ -547,7 +619,8 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         (None, None, None)
     };
 
-    save_map(&opts.out.join("map.safetensors"), cfg, backend.data())?;
+    let data = backend.export()?;
+    save_map(&opts.out.join("map.safetensors"), cfg, &data)?;
 
     let summary = MapSummary {
         dataset: opts.dataset.clone(),
@@ -631,6 +704,7 @@ pub fn run_demo(
     frames: usize,
     size: (u32, u32),
     threads: usize,
+    backend: &str,
     progress: bool,
 ) -> anyhow::Result<(MapSummary, PathBuf)> {
     let root = match out {
@@ -655,6 +729,7 @@ pub fn run_demo(
         stride: 1,
         resize: None,
         threads,
+        backend: backend.to_string(),
         progress,
     };
     let s = run_map(&opts)?;

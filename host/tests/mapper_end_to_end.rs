@@ -52,6 +52,7 @@ fn map_writes_all_outputs_and_the_loss_goes_down() {
         stride: 1,
         resize: None,
         threads: 2,
+        backend: "cpu".into(),
         progress: false,
     };
     let s = run_map(&opts).unwrap();

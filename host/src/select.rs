@@ -1,0 +1,194 @@
+//! Backend selection for the command line (`--backend cpu|vulkan|auto`) and the few
+//! operations the CLI needs beyond the core's [`Backend`]: batched SDF/colour queries (mesh
+//! extraction) and exporting the trained map.
+//!
+//! `auto` takes a Vulkan GPU (discrete, integrated or virtual; `HIMAP_VULKAN_DEVICE` forces a
+//! device) when one is usable and the multi-threaded CPU backend otherwise. The software
+//! driver (llvmpipe) alone does not count for `auto`: it runs the same kernels several times
+//! slower than the CPU backend, so it is used only with `--backend vulkan`. The choice and its
+//! reason are printed by the CLI and recorded in `summary.json`.
+
+use std::str::FromStr;
+
+use himap_core::adam::AdamConfig;
+use himap_core::model::{Group, NUM_GROUPS};
+use himap_core::step::{Backend, ImageStore};
+use himap_vulkan::{DeviceKind, VulkanBackend, VulkanError};
+
+use crate::backend::{ModelData, ParallelCpuBackend};
+
+/// What `--backend` asked for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BackendChoice {
+    Cpu,
+    Vulkan,
+    Auto,
+}
+
+impl FromStr for BackendChoice {
+    type Err = anyhow::Error;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "cpu" => Ok(Self::Cpu),
+            "vulkan" | "gpu" => Ok(Self::Vulkan),
+            "auto" => Ok(Self::Auto),
+            _ => anyhow::bail!("unknown backend {s:?}: expected cpu, vulkan or auto"),
+        }
+    }
+}
+
+/// The backend a run will use and why.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Decision {
+    pub vulkan: bool,
+    pub reason: String,
+}
+
+/// Resolves `auto` by looking at the Vulkan devices (see the module docs).
+pub fn decide(choice: BackendChoice) -> Decision {
+    match choice {
+        BackendChoice::Cpu => Decision {
+            vulkan: false,
+            reason: "cpu backend requested".into(),
+        },
+        BackendChoice::Vulkan => Decision {
+            vulkan: true,
+            reason: "vulkan backend requested".into(),
+        },
+        BackendChoice::Auto => {
+            let forced = std::env::var(himap_vulkan::DEVICE_ENV).is_ok();
+            match himap_vulkan::list_devices() {
+                Err(e) => Decision {
+                    vulkan: false,
+                    reason: format!("auto: no Vulkan ({e}); using the CPU"),
+                },
+                Ok(devs) => {
+                    let usable: Vec<_> = devs.iter().filter(|d| d.usable()).collect();
+                    if let Some(d) = usable.iter().find(|d| d.kind != DeviceKind::Cpu) {
+                        Decision {
+                            vulkan: true,
+                            reason: format!("auto: Vulkan GPU {} ({})", d.name, d.kind.as_str()),
+                        }
+                    } else if forced && !usable.is_empty() {
+                        Decision {
+                            vulkan: true,
+                            reason: format!(
+                                "auto: {} is set; using the Vulkan device it selects",
+                                himap_vulkan::DEVICE_ENV
+                            ),
+                        }
+                    } else if let Some(d) = usable.first() {
+                        Decision {
+                            vulkan: false,
+                            reason: format!(
+                                "auto: only the software Vulkan driver ({}) is present, slower \
+                                 than the CPU backend; using the CPU (--backend vulkan forces it)",
+                                d.name
+                            ),
+                        }
+                    } else {
+                        Decision {
+                            vulkan: false,
+                            reason: "auto: no usable Vulkan device; using the CPU".into(),
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// What the CLI needs from a backend beyond [`Backend`].
+pub trait MapBackend: Backend {
+    /// Signed distances at world points.
+    fn query_sdf(&mut self, points: &[[f32; 3]], out: &mut [f32]) -> anyhow::Result<()>;
+    /// Colours at world points.
+    fn query_color(&mut self, points: &[[f32; 3]], out: &mut [[f32; 3]]) -> anyhow::Result<()>;
+    /// The trained map (parameters, Adam moments and step) as host data.
+    fn export(&mut self) -> anyhow::Result<ModelData>;
+    /// CPU worker threads (0 for a GPU backend).
+    fn threads(&self) -> usize;
+}
+
+impl MapBackend for ParallelCpuBackend {
+    fn query_sdf(&mut self, points: &[[f32; 3]], out: &mut [f32]) -> anyhow::Result<()> {
+        self.sdf(points, out);
+        Ok(())
+    }
+
+    fn query_color(&mut self, points: &[[f32; 3]], out: &mut [[f32; 3]]) -> anyhow::Result<()> {
+        self.color(points, out);
+        Ok(())
+    }
+
+    fn export(&mut self) -> anyhow::Result<ModelData> {
+        Ok(self.data().clone())
+    }
+
+    fn threads(&self) -> usize {
+        ParallelCpuBackend::threads(self)
+    }
+}
+
+impl MapBackend for VulkanBackend {
+    fn query_sdf(&mut self, points: &[[f32; 3]], out: &mut [f32]) -> anyhow::Result<()> {
+        Ok(self.sdf(points, out)?)
+    }
+
+    fn query_color(&mut self, points: &[[f32; 3]], out: &mut [[f32; 3]]) -> anyhow::Result<()> {
+        Ok(self.color(points, out)?)
+    }
+
+    fn export(&mut self) -> anyhow::Result<ModelData> {
+        let layout = *self.layout();
+        let mut data = ModelData::new(layout, 0).map_err(|e| anyhow::anyhow!("{e}"))?;
+        for g in Group::ALL {
+            let i = g as usize;
+            self.read_params(g, &mut data.params[i])?;
+            let (m, v) = (&mut data.m[i], &mut data.v[i]);
+            self.read_adam(g, m, v)?;
+        }
+        data.t = self.steps();
+        Ok(data)
+    }
+
+    fn threads(&self) -> usize {
+        0
+    }
+}
+
+/// The Vulkan backend over `data` (parameters; Adam moments start at zero unless `data`
+/// carries them, see [`VulkanBackend::new`]) with `store` image slots.
+pub fn vulkan_backend(
+    data: &ModelData,
+    adam: [AdamConfig; NUM_GROUPS],
+    store: ImageStore,
+) -> Result<VulkanBackend, VulkanError> {
+    let p = &data.params;
+    VulkanBackend::new(data.layout, [&p[0], &p[1], &p[2], &p[3], &p[4]], adam)?.with_images(store)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn choices_parse_and_explicit_choices_are_kept() {
+        assert_eq!("cpu".parse::<BackendChoice>().unwrap(), BackendChoice::Cpu);
+        assert_eq!(
+            "vulkan".parse::<BackendChoice>().unwrap(),
+            BackendChoice::Vulkan
+        );
+        assert_eq!(
+            "auto".parse::<BackendChoice>().unwrap(),
+            BackendChoice::Auto
+        );
+        assert!("cuda".parse::<BackendChoice>().is_err());
+        assert!(!decide(BackendChoice::Cpu).vulkan);
+        assert!(decide(BackendChoice::Vulkan).vulkan);
+        // auto always decides and says why
+        let d = decide(BackendChoice::Auto);
+        assert!(d.reason.starts_with("auto: "), "{}", d.reason);
+    }
+}
