@@ -15,6 +15,11 @@
 //! - entry points live at the crate root: rust-gpu names an entry point in a module
 //!   `module::name`.
 //!
+//! rust-gpu 0.11's linker merges identical parameter declarations (name, type, set, binding)
+//! of different entry points into one global; `himap-vulkan`'s test
+//! `entry_point_bindings_are_distinct_and_in_range` checks that no entry point ends up with a
+//! binding twice or past its declared count (it caught a renumbering slip).
+//!
 //! rust-gpu 0.11 rejects, in code reachable from an entry point: `[false; N]` (bool array
 //! repeat: "memset invalid on bool pattern"), `Result<_, himap_core::Error>` values (the
 //! `&'static str` payload; layout constructors are host-side), unsizing a function-local array
@@ -33,7 +38,7 @@ use himap_core::model::{
     self, Group, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache, SampleScratch,
 };
 use himap_core::render::MAX_SAMPLES;
-use himap_core::{fixed, rng, Aabb, GradSink};
+use himap_core::{fixed, rng, Aabb, GradSink, ParamRead};
 use spirv_std::arch::atomic_i_add;
 use spirv_std::glam::UVec3;
 use spirv_std::memory::{Scope, Semantics};
@@ -273,12 +278,56 @@ pub struct RangePush {
 /// [`Group`]), each contribution converted with [`fixed::to_fixed`] and added with a 64-bit
 /// integer atomic: the sums equal the CPU's `FixedModelSink` bit for bit in any order.
 /// Zero contributions are skipped (adding 0 changes nothing); indices past the end are dropped.
+///
+/// The two grid groups may be split in two bindings (see [`SplitParams`]): index `i` below
+/// the split goes to the low part, the rest to the high part at `i - split`.
 pub struct AtomicModelSink<'a> {
     pub geometry_grid: &'a mut [i64],
+    pub geometry_grid_hi: &'a mut [i64],
+    pub geometry_split: usize,
     pub appearance_grid: &'a mut [i64],
+    pub appearance_grid_hi: &'a mut [i64],
+    pub appearance_split: usize,
     pub geometry_mlp: &'a mut [i64],
     pub appearance_mlp: &'a mut [i64],
     pub beta: &'a mut [i64],
+}
+
+/// A parameter group read from one or two storage-buffer bindings: `lo` holds indices
+/// `0..split`, `hi` the rest (a group larger than one binding may be). Reads past the end are
+/// 0.
+pub struct SplitParams<'a> {
+    pub lo: &'a [f32],
+    pub hi: &'a [f32],
+    pub split: usize,
+}
+
+impl<'a> SplitParams<'a> {
+    #[inline(always)]
+    pub fn new(lo: &'a [f32], hi: &'a [f32], split: usize) -> Self {
+        Self { lo, hi, split }
+    }
+
+    /// A group in one binding.
+    #[inline(always)]
+    pub fn whole(lo: &'a [f32]) -> Self {
+        Self {
+            lo,
+            hi: lo,
+            split: usize::MAX,
+        }
+    }
+}
+
+impl ParamRead for SplitParams<'_> {
+    #[inline(always)]
+    fn at(&self, i: usize) -> f32 {
+        if i < self.split {
+            float_at(self.lo, i)
+        } else {
+            float_at(self.hi, i - self.split)
+        }
+    }
 }
 
 #[inline(always)]
@@ -301,8 +350,20 @@ impl ModelGradSink for AtomicModelSink<'_> {
             return;
         }
         match group {
-            Group::GeometryGrid => atomic_add_i64(self.geometry_grid, i, q),
-            Group::AppearanceGrid => atomic_add_i64(self.appearance_grid, i, q),
+            Group::GeometryGrid => {
+                if i < self.geometry_split {
+                    atomic_add_i64(self.geometry_grid, i, q)
+                } else {
+                    atomic_add_i64(self.geometry_grid_hi, i - self.geometry_split, q)
+                }
+            }
+            Group::AppearanceGrid => {
+                if i < self.appearance_split {
+                    atomic_add_i64(self.appearance_grid, i, q)
+                } else {
+                    atomic_add_i64(self.appearance_grid_hi, i - self.appearance_split, q)
+                }
+            }
             Group::GeometryMlp => atomic_add_i64(self.geometry_mlp, i, q),
             Group::AppearanceMlp => atomic_add_i64(self.appearance_mlp, i, q),
             Group::Beta => atomic_add_i64(self.beta, i, q),
@@ -362,6 +423,12 @@ fn first_or_zero(v: &[f32]) -> f32 {
     float_at(v, 0)
 }
 
+/// The parameter bindings of the entry points that read the field (after binding 0, the
+/// model words [`words::MODEL_WORDS`]): geometry grid (low, high part), appearance grid (low,
+/// high part), geometry MLP, appearance MLP, beta (one float). A grid in one binding has its
+/// high part bound to any buffer and split point `u32::MAX`.
+pub const PARAM_BINDINGS: usize = 7;
+
 /// Floats of one sample record in the samples buffer: `t`, `sdf`, `rgb` (3) written by
 /// [`sample_forward_cs`], then `d_sdf`, `d_rgb` (3) written by the composite passes
 /// ([`ray_train_cs`], [`pixel_train_cs`]). Sample `k` of ray `r` is record `r * S + k`, with
@@ -403,9 +470,9 @@ fn samples_per_ray(layout: &ModelLayout) -> usize {
 /// are.
 ///
 /// - binding 0 `model`: the [`model::ModelLayout`] as words;
-/// - bindings 1..=5: parameters of the groups in [`Group::ALL`] order (beta: one float);
-/// - binding 6 `rays`: [`RAY_FLOATS`] floats per ray;
-/// - binding 7 `samples`: [`SAMPLE_FLOATS`] floats per sample record.
+/// - bindings 1..=7: the parameters ([`PARAM_BINDINGS`]);
+/// - binding 8 `rays`: [`RAY_FLOATS`] floats per ray;
+/// - binding 9 `samples`: [`SAMPLE_FLOATS`] floats per sample record.
 #[spirv(compute(threads(64)))]
 #[allow(clippy::too_many_arguments)]
 pub fn sample_forward_cs(
@@ -413,12 +480,14 @@ pub fn sample_forward_cs(
     #[spirv(push_constant)] pc: &SamplePush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_geometry_mlp: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_mlp: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_beta: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] rays: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] samples: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_geometry_grid_hi: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_appearance_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_grid_hi: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_geometry_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] p_appearance_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] samples: &mut [f32],
 ) {
     if id.x >= pc.n {
         return;
@@ -433,11 +502,23 @@ pub fn sample_forward_cs(
     if k >= n || (i + 1) * SAMPLE_FLOATS > samples.len() {
         return;
     }
+    let geo = SplitParams::new(
+        p_geometry_grid,
+        p_geometry_grid_hi,
+        words::split(model_words, 0),
+    );
+    let app = SplitParams::new(
+        p_appearance_grid,
+        p_appearance_grid_hi,
+        words::split(model_words, 1),
+    );
+    let gm = SplitParams::whole(p_geometry_mlp);
+    let am = SplitParams::whole(p_appearance_mlp);
     let params = Params {
-        geometry_grid: p_geometry_grid,
-        appearance_grid: p_appearance_grid,
-        geometry_mlp: p_geometry_mlp,
-        appearance_mlp: p_appearance_mlp,
+        geometry_grid: &geo,
+        appearance_grid: &app,
+        geometry_mlp: &gm,
+        appearance_mlp: &am,
         beta: first_or_zero(p_beta),
     };
     let mut scratch = SampleScratch::new();
@@ -571,8 +652,9 @@ pub fn ray_train_cs(
 /// `model::sample_backward` of record `i` (ray `i / S`) with its stored `t` and cotangents,
 /// the gradients added by [`AtomicModelSink`].
 ///
-/// - binding 0 `model`; bindings 1..=5 the parameters; bindings 6..=10 the gradients;
-/// - binding 11 `rays`; binding 12 `samples`.
+/// - binding 0 `model`; bindings 1..=7 the parameters ([`PARAM_BINDINGS`]); bindings 8..=14
+///   the gradients in the same order (`i64`);
+/// - binding 15 `rays`; binding 16 `samples`.
 #[spirv(compute(threads(64)))]
 #[allow(clippy::too_many_arguments)]
 pub fn sample_backward_cs(
@@ -580,17 +662,21 @@ pub fn sample_backward_cs(
     #[spirv(push_constant)] pc: &SamplePush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_geometry_mlp: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_mlp: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_beta: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] g_geometry_grid: &mut [i64],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] g_appearance_grid: &mut [i64],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] g_geometry_mlp: &mut [i64],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] g_appearance_mlp: &mut [i64],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] g_beta: &mut [i64],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] rays: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] samples: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_geometry_grid_hi: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_appearance_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_grid_hi: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_geometry_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] p_appearance_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] g_geometry_grid: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] g_geometry_grid_hi: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] g_appearance_grid: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] g_appearance_grid_hi: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] g_geometry_mlp: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 13)] g_appearance_mlp: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 14)] g_beta: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 15)] rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 16)] samples: &[f32],
 ) {
     if id.x >= pc.n {
         return;
@@ -608,16 +694,32 @@ pub fn sample_backward_cs(
     let layout = words::model_layout_from_words(model_words, 0);
     let per = samples_per_ray(&layout);
     let ray = read_ray(rays, i / per);
+    let geo = SplitParams::new(
+        p_geometry_grid,
+        p_geometry_grid_hi,
+        words::split(model_words, 0),
+    );
+    let app = SplitParams::new(
+        p_appearance_grid,
+        p_appearance_grid_hi,
+        words::split(model_words, 1),
+    );
+    let gm = SplitParams::whole(p_geometry_mlp);
+    let am = SplitParams::whole(p_appearance_mlp);
     let params = Params {
-        geometry_grid: p_geometry_grid,
-        appearance_grid: p_appearance_grid,
-        geometry_mlp: p_geometry_mlp,
-        appearance_mlp: p_appearance_mlp,
+        geometry_grid: &geo,
+        appearance_grid: &app,
+        geometry_mlp: &gm,
+        appearance_mlp: &am,
         beta: first_or_zero(p_beta),
     };
     let mut sink = AtomicModelSink {
         geometry_grid: g_geometry_grid,
+        geometry_grid_hi: g_geometry_grid_hi,
+        geometry_split: geo.split,
         appearance_grid: g_appearance_grid,
+        appearance_grid_hi: g_appearance_grid_hi,
+        appearance_split: app.split,
         geometry_mlp: g_geometry_mlp,
         appearance_mlp: g_appearance_mlp,
         beta: g_beta,
@@ -767,9 +869,9 @@ pub fn pixel_train_cs(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] window_words: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] pixels: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] images: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] rays: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] samples: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] results: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] pixel_rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] pixel_samples: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] pixel_results: &mut [f32],
 ) {
     if id.x >= pc.n {
         return;
@@ -800,9 +902,18 @@ pub fn pixel_train_cs(
     let mut res = PixelResult::default();
     let mut live = 0;
     if (px.frame as usize) < n {
-        let ray = read_ray(rays, i);
+        let ray = read_ray(pixel_rays, i);
         let mut cache = RayCache::new();
-        load_ray(&layout, beta, &ray, i, loss.seed, true, samples, &mut cache);
+        load_ray(
+            &layout,
+            beta,
+            &ray,
+            i,
+            loss.seed,
+            true,
+            pixel_samples,
+            &mut cache,
+        );
         let (r, d_color, d_depth) =
             mapping::pixel_loss(&window, px, &ray, &cache.out, cache.n, &loss);
         res = r;
@@ -827,22 +938,22 @@ pub fn pixel_train_cs(
             }
         }
     }
-    store_cotangents(&layout, i, live, &d_sdf, &d_rgb, samples);
+    store_cotangents(&layout, i, live, &d_sdf, &d_rgb, pixel_samples);
     let b = i * PIXEL_RESULT_FLOATS;
-    if b + PIXEL_RESULT_FLOATS <= results.len() {
-        results[b] = res.color[0];
-        results[b + 1] = res.color[1];
-        results[b + 2] = res.color[2];
-        results[b + 3] = res.depth;
-        results[b + 4] = res.opacity;
-        results[b + 5] = res.color_loss;
-        results[b + 6] = res.warp_loss;
-        results[b + 7] = res.warp_views as f32;
+    if b + PIXEL_RESULT_FLOATS <= pixel_results.len() {
+        pixel_results[b] = res.color[0];
+        pixel_results[b + 1] = res.color[1];
+        pixel_results[b + 2] = res.color[2];
+        pixel_results[b + 3] = res.depth;
+        pixel_results[b + 4] = res.opacity;
+        pixel_results[b + 5] = res.color_loss;
+        pixel_results[b + 6] = res.warp_loss;
+        pixel_results[b + 7] = res.warp_views as f32;
     }
 }
 
-/// Signed distance at points: `out[i] = sdf_at(points[i])`. Bindings 0..=5 as
-/// [`train_ray_cs`]; binding 6 `points` (3 floats each), binding 7 `out` (1 float each).
+/// Signed distance at points: `out[i] = sdf_at(points[i])`. Bindings 0..=7 as
+/// [`sample_forward_cs`]; binding 8 `points` (3 floats each), binding 9 `out` (1 float each).
 #[spirv(compute(threads(64)))]
 #[allow(clippy::too_many_arguments)]
 pub fn sdf_query_cs(
@@ -850,12 +961,14 @@ pub fn sdf_query_cs(
     #[spirv(push_constant)] pc: &RangePush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_geometry_mlp: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_mlp: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_beta: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] points: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] out: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_geometry_grid_hi: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_appearance_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_grid_hi: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_geometry_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] p_appearance_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] points: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] out: &mut [f32],
 ) {
     if id.x >= pc.n {
         return;
@@ -865,11 +978,23 @@ pub fn sdf_query_cs(
         return;
     }
     let layout = words::model_layout_from_words(model_words, 0);
+    let geo = SplitParams::new(
+        p_geometry_grid,
+        p_geometry_grid_hi,
+        words::split(model_words, 0),
+    );
+    let app = SplitParams::new(
+        p_appearance_grid,
+        p_appearance_grid_hi,
+        words::split(model_words, 1),
+    );
+    let gm = SplitParams::whole(p_geometry_mlp);
+    let am = SplitParams::whole(p_appearance_mlp);
     let params = Params {
-        geometry_grid: p_geometry_grid,
-        appearance_grid: p_appearance_grid,
-        geometry_mlp: p_geometry_mlp,
-        appearance_mlp: p_appearance_mlp,
+        geometry_grid: &geo,
+        appearance_grid: &app,
+        geometry_mlp: &gm,
+        appearance_mlp: &am,
         beta: first_or_zero(p_beta),
     };
     let p = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
@@ -886,12 +1011,14 @@ pub fn color_query_cs(
     #[spirv(push_constant)] pc: &RangePush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_appearance_grid: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_geometry_mlp: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_mlp: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_beta: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] points: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] out: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_geometry_grid_hi: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_appearance_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_grid_hi: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_geometry_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] p_appearance_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] points: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] out: &mut [f32],
 ) {
     if id.x >= pc.n {
         return;
@@ -901,11 +1028,23 @@ pub fn color_query_cs(
         return;
     }
     let layout = words::model_layout_from_words(model_words, 0);
+    let geo = SplitParams::new(
+        p_geometry_grid,
+        p_geometry_grid_hi,
+        words::split(model_words, 0),
+    );
+    let app = SplitParams::new(
+        p_appearance_grid,
+        p_appearance_grid_hi,
+        words::split(model_words, 1),
+    );
+    let gm = SplitParams::whole(p_geometry_mlp);
+    let am = SplitParams::whole(p_appearance_mlp);
     let params = Params {
-        geometry_grid: p_geometry_grid,
-        appearance_grid: p_appearance_grid,
-        geometry_mlp: p_geometry_mlp,
-        appearance_mlp: p_appearance_mlp,
+        geometry_grid: &geo,
+        appearance_grid: &app,
+        geometry_mlp: &gm,
+        appearance_mlp: &am,
         beta: first_or_zero(p_beta),
     };
     let p = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];

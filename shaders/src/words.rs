@@ -47,6 +47,26 @@ pub const MODEL_CONFIG: usize = AABB + 2 * GRID_CONFIG + 8;
 /// Words of a [`ModelLayout`].
 pub const MODEL_LAYOUT: usize = MODEL_CONFIG + 2 * GRID_LAYOUT + 2 * MLP_LAYOUT;
 
+/// Offset of the two grid split points after the model layout in the model words (see
+/// [`split`]).
+pub const SPLITS: usize = MODEL_LAYOUT;
+/// Words of the model buffer the shaders read: the layout, then the split points of the
+/// geometry and the appearance grid.
+pub const MODEL_WORDS: usize = MODEL_LAYOUT + 2;
+
+/// Split point `k` (0: geometry grid, 1: appearance grid): the number of the group's
+/// parameters in its first binding; `u32::MAX` (or a missing word, read as 0 and treated as
+/// "no split" only if the host wrote it so) means all of them.
+#[inline(always)]
+pub fn split(w: &[u32], k: usize) -> usize {
+    let s = word(w, SPLITS + k);
+    if s == u32::MAX {
+        usize::MAX
+    } else {
+        s as usize
+    }
+}
+
 /// Words of a [`MappingLoss`].
 pub const MAPPING_LOSS: usize = 16;
 /// Offset of the slot table in the window words.

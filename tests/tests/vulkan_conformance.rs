@@ -19,7 +19,7 @@ use himap_core::render::RenderMode;
 use himap_core::step::{paper_adam, Backend, CpuBackend, GroupState, ImageStore, MapBatch};
 use himap_core::warp::WarpConfig;
 use himap_core::Aabb;
-use himap_vulkan::{VulkanBackend, VulkanError};
+use himap_vulkan::{VulkanBackend, VulkanError, VulkanOptions};
 
 /// The Vulkan backend over `data`'s parameters, or `None` (with the reason printed) when this
 /// machine has no usable Vulkan device. With `HIMAP_REQUIRE_VULKAN=1` a missing device is a
@@ -701,4 +701,80 @@ fn map_command_on_vulkan_equals_cpu() {
     }
     assert_eq!(sc.mesh_faces, sg.mesh_faces);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Grids larger than one storage-buffer binding are split in two parts: with the binding
+/// limit forced below both grids, training steps, gradients, rendering and queries still equal
+/// the CPU's bit for bit, and a group that does not fit even in two parts is a clear error.
+#[test]
+fn grids_split_across_two_bindings_match_cpu() {
+    let (data, rays) = setup(RenderMode::SdfDensity, 6, 150);
+    let lens = data.layout.group_lens();
+    let (geo, app) = (lens[0], lens[1]);
+    let part = geo.max(app).div_ceil(2);
+    assert!(
+        part < geo.min(app) && lens[2].max(lens[3]) <= part,
+        "{lens:?}"
+    );
+    let adam = test_adam();
+    let probe = vulkan_or_skip(&data, adam);
+    if probe.is_none() {
+        return;
+    }
+    drop(probe);
+    let p = &data.params;
+    let params = [&p[0][..], &p[1][..], &p[2][..], &p[3][..], &p[4][..]];
+    let options = VulkanOptions {
+        max_binding_bytes: Some(part as u64 * 8),
+    };
+    let mut gpu = VulkanBackend::with_options(data.layout, params, adam, options).unwrap();
+    let mut cpu_state = CpuState::new(&data);
+    let mut cpu = cpu_state.backend(adam);
+    let n = rays.len();
+    let mut rc = vec![RayResult::default(); n];
+    let mut rg = vec![RayResult::default(); n];
+    for step in 0..3 {
+        let loss = loss_config(step, n);
+        let sc = cpu.train_step(&rays, &loss, &mut rc).unwrap();
+        let sg = gpu.train_step(&rays, &loss, &mut rg).unwrap();
+        assert!(
+            same(sc.loss, sg.loss),
+            "step {step}: {} vs {}",
+            sc.loss,
+            sg.loss
+        );
+        assert_same_f32(
+            "split step results",
+            &result_floats(&rc),
+            &result_floats(&rg),
+        );
+    }
+    for g in Group::ALL {
+        let len = data.layout.group_len(g);
+        let (mut c, mut q) = (vec![0.0f32; len], vec![0.0f32; len]);
+        cpu.read_params(g, &mut c).unwrap();
+        gpu.read_params(g, &mut q).unwrap();
+        assert_same_f32(&format!("split {} params", g.name()), &c, &q);
+        let (mut gc, mut gg) = (vec![0i64; len], vec![0i64; len]);
+        cpu.read_grads(g, &mut gc).unwrap();
+        gpu.read_grads(g, &mut gg).unwrap();
+        assert_eq!(gc, gg, "split {} gradients", g.name());
+    }
+    cpu.render(&rays, &mut rc).unwrap();
+    gpu.render(&rays, &mut rg).unwrap();
+    assert_same_f32("split render", &result_floats(&rc), &result_floats(&rg));
+    // writing a split group lands in both parts
+    let w: Vec<f32> = (0..geo).map(|i| (i % 7) as f32 * 0.01).collect();
+    gpu.write_params(Group::GeometryGrid, &w, true).unwrap();
+    let mut back = vec![0.0f32; geo];
+    gpu.read_params(Group::GeometryGrid, &mut back).unwrap();
+    assert_eq!(back, w);
+    // a grid that needs more than two bindings is an error naming the limit
+    let tiny = VulkanOptions {
+        max_binding_bytes: Some((geo as u64 * 8) / 3),
+    };
+    let e = VulkanBackend::with_options(data.layout, params, adam, tiny)
+        .err()
+        .expect("three parts are not supported");
+    assert!(matches!(e, VulkanError::TensorTooLarge { .. }), "{e}");
 }

@@ -23,10 +23,13 @@
 //! Rays, pixels and per-item results travel through host-visible buffers; the host sums the
 //! loss in item order, as the CPU does.
 //!
-//! Tensor size: each group is one storage-buffer binding, so a group may hold at most
-//! `maxStorageBufferRange` bytes (128 MiB on lavapipe, 32 Mi floats); larger groups are a
-//! [`VulkanError::TensorTooLarge`] at construction (splitting across bindings is not
-//! implemented yet).
+//! Tensor size: one storage-buffer binding holds at most `maxStorageBufferRange` bytes (128 MiB
+//! on lavapipe). A grid group whose i64 gradient is larger is split into two parts (two
+//! buffers each for parameters, moments and gradient); the shaders read it through
+//! `SplitParams` and add gradients through `AtomicModelSink` by index, and Adam runs per part.
+//! So a grid may have up to `2 * maxStorageBufferRange / 8` parameters (33.5 M on lavapipe);
+//! larger groups, and decoders past one binding, are a [`VulkanError::TensorTooLarge`] at
+//! construction.
 
 use crate::device;
 use crate::error::VulkanError;
@@ -62,13 +65,68 @@ struct Pipelines {
     color: Pipeline,
 }
 
-/// Per-group device state.
-struct GroupBuffers {
+/// One part of a group: parameters `start..start + len` with their Adam moments and
+/// fixed-point gradient.
+struct Part {
     params: Buffer,
     m: Buffer,
     v: Buffer,
     grad: Buffer,
+    start: usize,
     len: usize,
+}
+
+/// Per-group device state: one part, or two for a grid larger than one storage-buffer binding
+/// allows (the shaders read such a group through `SplitParams`).
+struct GroupBuffers {
+    parts: Vec<Part>,
+    len: usize,
+}
+
+impl GroupBuffers {
+    fn lo(&self) -> &Part {
+        &self.parts[0]
+    }
+
+    /// The second part, or the first again when the group is whole.
+    fn hi(&self) -> &Part {
+        &self.parts[self.parts.len() - 1]
+    }
+}
+
+/// The parameter bindings of the field-reading entry points (`PARAM_BINDINGS`).
+fn param_bindings(groups: &[GroupBuffers; NUM_GROUPS]) -> [&Buffer; 7] {
+    [
+        &groups[0].lo().params,
+        &groups[0].hi().params,
+        &groups[1].lo().params,
+        &groups[1].hi().params,
+        &groups[2].lo().params,
+        &groups[3].lo().params,
+        &groups[4].lo().params,
+    ]
+}
+
+/// The gradient bindings of `sample_backward_cs`, in the order of [`param_bindings`].
+fn grad_bindings(groups: &[GroupBuffers; NUM_GROUPS]) -> [&Buffer; 7] {
+    [
+        &groups[0].lo().grad,
+        &groups[0].hi().grad,
+        &groups[1].lo().grad,
+        &groups[1].hi().grad,
+        &groups[2].lo().grad,
+        &groups[3].lo().grad,
+        &groups[4].lo().grad,
+    ]
+}
+
+/// Construction options of [`VulkanBackend`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct VulkanOptions {
+    /// Largest storage-buffer binding to use, in bytes (default: the device's
+    /// `maxStorageBufferRange`, at most `maxMemoryAllocationSize`). Lower values force the
+    /// grids to be split across two bindings (used by the tests).
+    pub max_binding_bytes: Option<u64>,
 }
 
 /// The Vulkan backend. Construct with [`VulkanBackend::new`].
@@ -173,6 +231,21 @@ fn upload_at(
     })
 }
 
+/// Reads `out.len()` floats from the start of `src`.
+fn download_f32(
+    gpu: &mut Gpu,
+    staging: &mut Option<Buffer>,
+    src: &Buffer,
+    out: &mut [f32],
+) -> Result<(), VulkanError> {
+    let mut bytes = vec![0u8; out.len() * 4];
+    download(gpu, staging, src, &mut bytes)?;
+    for (x, b) in out.iter_mut().zip(bytes.as_chunks::<4>().0) {
+        *x = f32::from_le_bytes(*b);
+    }
+    Ok(())
+}
+
 /// Reads `out.len()` bytes from the start of `src`.
 fn download(
     gpu: &mut Gpu,
@@ -230,47 +303,91 @@ impl VulkanBackend {
         params: [&[f32]; NUM_GROUPS],
         adam: [AdamConfig; NUM_GROUPS],
     ) -> Result<Self, VulkanError> {
+        Self::with_options(layout, params, adam, VulkanOptions::default())
+    }
+
+    /// [`VulkanBackend::new`] with [`VulkanOptions`].
+    pub fn with_options(
+        layout: ModelLayout,
+        params: [&[f32]; NUM_GROUPS],
+        adam: [AdamConfig; NUM_GROUPS],
+        options: VulkanOptions,
+    ) -> Result<Self, VulkanError> {
         let lens = layout.group_lens();
         for (g, p) in params.iter().enumerate() {
             check_len(Group::ALL[g].name(), p.len(), lens[g])?;
         }
         let device = device::open()?;
         let info = device.info.clone();
-        let max_binding =
+        let device_max =
             (info.max_storage_buffer_range as u64).min(info.max_memory_allocation_size);
-        let limit_name =
+        let mut limit_name =
             if (info.max_storage_buffer_range as u64) <= info.max_memory_allocation_size {
                 "maxStorageBufferRange"
             } else {
                 "maxMemoryAllocationSize"
             };
-        for (g, &len) in Group::ALL.iter().zip(lens.iter()) {
-            // The i64 gradient is the largest buffer of a group.
-            let bytes = len as u64 * 8;
-            if bytes > max_binding {
+        let max_binding = device_max;
+        let group_binding = match options.max_binding_bytes {
+            Some(b) if b < device_max => {
+                limit_name = "VulkanOptions::max_binding_bytes";
+                b.max(64)
+            }
+            _ => device_max,
+        };
+        // The i64 gradient is the largest buffer of a group: a part holds at most this many.
+        let part_max = (group_binding / 8) as usize;
+        let mut part_lens: [Vec<usize>; NUM_GROUPS] = Default::default();
+        for (g, &len) in lens.iter().enumerate() {
+            let grid = g < 2;
+            let parts = if len <= part_max {
+                vec![len]
+            } else if grid && len <= 2 * part_max {
+                vec![part_max, len - part_max]
+            } else {
                 return Err(VulkanError::TensorTooLarge {
-                    what: format!("the fixed-point gradient of {}", g.name()),
-                    bytes,
-                    limit: max_binding,
+                    what: format!(
+                        "the fixed-point gradient of {}{}",
+                        Group::ALL[g].name(),
+                        if grid {
+                            " (even split in two bindings)"
+                        } else {
+                            ""
+                        }
+                    ),
+                    bytes: len as u64 * 8,
+                    limit: if grid {
+                        2 * group_binding
+                    } else {
+                        group_binding
+                    },
                     limit_name,
                 });
-            }
+            };
+            part_lens[g] = parts;
         }
         let mut gpu = Gpu::new(&device)?;
         let module = ShaderModule::new(&device, &crate::shader_words())?;
         let pipelines = Pipelines {
-            sample_forward: Pipeline::new(&device, &module, entry::SAMPLE_FORWARD, 8, 16)?,
+            sample_forward: Pipeline::new(&device, &module, entry::SAMPLE_FORWARD, 10, 16)?,
             ray_train: Pipeline::new(&device, &module, entry::RAY_TRAIN, 6, 32)?,
-            sample_backward: Pipeline::new(&device, &module, entry::SAMPLE_BACKWARD, 13, 16)?,
+            sample_backward: Pipeline::new(&device, &module, entry::SAMPLE_BACKWARD, 17, 16)?,
             ray_render: Pipeline::new(&device, &module, entry::RAY_RENDER, 5, 16)?,
             pixel_rays: Pipeline::new(&device, &module, entry::PIXEL_RAYS, 4, 16)?,
             pixel_train: Pipeline::new(&device, &module, entry::PIXEL_TRAIN, 9, 16)?,
             adam: Pipeline::new(&device, &module, entry::ADAM, 4, 32)?,
-            sdf: Pipeline::new(&device, &module, entry::SDF_QUERY, 8, 16)?,
-            color: Pipeline::new(&device, &module, entry::COLOR_QUERY, 8, 16)?,
+            sdf: Pipeline::new(&device, &module, entry::SDF_QUERY, 10, 16)?,
+            color: Pipeline::new(&device, &module, entry::COLOR_QUERY, 10, 16)?,
         };
-        let mut w = vec![0u32; words::MODEL_LAYOUT];
+        let mut w = vec![0u32; words::MODEL_WORDS];
         words::model_layout_to_words(&layout, &mut w, 0);
+        for k in 0..2 {
+            w[words::SPLITS + k] = if part_lens[k].len() > 1 {
+                part_lens[k][0] as u32
+            } else {
+                u32::MAX
+            };
+        }
         let mut staging = None;
         let mut model_words = Buffer::new(
             &device,
@@ -280,20 +397,35 @@ impl VulkanBackend {
         )?;
         upload(&mut gpu, &mut staging, &mut model_words, &u32_bytes(&w))?;
         let mut make = |g: usize| -> Result<GroupBuffers, VulkanError> {
-            let n = lens[g] as u64;
             let name = Group::ALL[g].name();
-            let mut p = Buffer::new(
-                &device,
-                n * 4,
-                Memory::Device,
-                &format!("{name} parameters"),
-            )?;
-            upload(&mut gpu, &mut staging, &mut p, &f32_bytes(params[g]))?;
+            let mut parts = Vec::new();
+            let mut start = 0;
+            for &len in &part_lens[g] {
+                let n = len as u64;
+                let mut p = Buffer::new(
+                    &device,
+                    n * 4,
+                    Memory::Device,
+                    &format!("{name} parameters"),
+                )?;
+                upload(
+                    &mut gpu,
+                    &mut staging,
+                    &mut p,
+                    &f32_bytes(&params[g][start..start + len]),
+                )?;
+                parts.push(Part {
+                    params: p,
+                    m: Buffer::new(&device, n * 4, Memory::Device, &format!("{name} Adam m"))?,
+                    v: Buffer::new(&device, n * 4, Memory::Device, &format!("{name} Adam v"))?,
+                    grad: Buffer::new(&device, n * 8, Memory::Device, &format!("{name} gradient"))?,
+                    start,
+                    len,
+                });
+                start += len;
+            }
             Ok(GroupBuffers {
-                params: p,
-                m: Buffer::new(&device, n * 4, Memory::Device, &format!("{name} Adam m"))?,
-                v: Buffer::new(&device, n * 4, Memory::Device, &format!("{name} Adam v"))?,
-                grad: Buffer::new(&device, n * 8, Memory::Device, &format!("{name} gradient"))?,
+                parts,
                 len: lens[g],
             })
         };
@@ -301,10 +433,10 @@ impl VulkanBackend {
         {
             let g = &groups;
             gpu.submit(|r| {
-                for b in g.iter() {
-                    r.zero(&b.m);
-                    r.zero(&b.v);
-                    r.zero(&b.grad);
+                for p in g.iter().flat_map(|b| b.parts.iter()) {
+                    r.zero(&p.m);
+                    r.zero(&p.v);
+                    r.zero(&p.grad);
                 }
                 Ok(())
             })?;
@@ -347,14 +479,10 @@ impl VulkanBackend {
         let g = &self.groups[group as usize];
         check_len(group.name(), m.len(), g.len)?;
         check_len(group.name(), v.len(), g.len)?;
-        let mut bytes = vec![0u8; g.len * 4];
-        download(&mut self.gpu, &mut self.staging, &g.m, &mut bytes)?;
-        for (x, b) in m.iter_mut().zip(bytes.as_chunks::<4>().0) {
-            *x = f32::from_le_bytes(*b);
-        }
-        download(&mut self.gpu, &mut self.staging, &g.v, &mut bytes)?;
-        for (x, b) in v.iter_mut().zip(bytes.as_chunks::<4>().0) {
-            *x = f32::from_le_bytes(*b);
+        for p in &g.parts {
+            let r = p.start..p.start + p.len;
+            download_f32(&mut self.gpu, &mut self.staging, &p.m, &mut m[r.clone()])?;
+            download_f32(&mut self.gpu, &mut self.staging, &p.v, &mut v[r])?;
         }
         Ok(())
     }
@@ -435,15 +563,11 @@ impl VulkanBackend {
             let set = r.bind(
                 pipeline,
                 &[
-                    model_words,
-                    &groups[0].params,
-                    &groups[1].params,
-                    &groups[2].params,
-                    &groups[3].params,
-                    &groups[4].params,
-                    input,
-                    output,
-                ],
+                    &[&*model_words][..],
+                    &param_bindings(groups),
+                    &[input, output],
+                ]
+                .concat(),
             )?;
             for (first, count, wg) in chunks(n, *max_groups) {
                 let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
@@ -565,6 +689,21 @@ fn record_adam<'a>(
     max_groups: u32,
 ) -> Result<(), VulkanError> {
     for (g, s) in groups.iter().zip(steps.iter()) {
+        for part in &g.parts {
+            record_adam_part(r, pipeline, part, s, max_groups)?;
+        }
+    }
+    Ok(())
+}
+
+fn record_adam_part<'a>(
+    r: &mut crate::raw::Recorder<'a>,
+    pipeline: &'a Pipeline,
+    g: &'a Part,
+    s: &AdamStep,
+    max_groups: u32,
+) -> Result<(), VulkanError> {
+    {
         let set = r.bind(pipeline, &[&g.params, &g.m, &g.v, &g.grad])?;
         for (first, count, wg) in chunks(g.len, max_groups) {
             let p = push_bytes([
@@ -600,15 +739,11 @@ fn record_sample_forward<'a>(
     let set = r.bind(
         pipeline,
         &[
-            model_words,
-            &groups[0].params,
-            &groups[1].params,
-            &groups[2].params,
-            &groups[3].params,
-            &groups[4].params,
-            rays,
-            samples,
-        ],
+            &[model_words][..],
+            &param_bindings(groups),
+            &[rays, samples],
+        ]
+        .concat(),
     )?;
     for (first, count, wg) in chunks(records, max_groups) {
         let p = push_bytes([count, first, seed, jitter as u32, 0, 0, 0, 0]);
@@ -632,20 +767,12 @@ fn record_sample_backward<'a>(
     let set = r.bind(
         pipeline,
         &[
-            model_words,
-            &groups[0].params,
-            &groups[1].params,
-            &groups[2].params,
-            &groups[3].params,
-            &groups[4].params,
-            &groups[0].grad,
-            &groups[1].grad,
-            &groups[2].grad,
-            &groups[3].grad,
-            &groups[4].grad,
-            rays,
-            samples,
-        ],
+            &[model_words][..],
+            &param_bindings(groups),
+            &grad_bindings(groups),
+            &[rays, samples],
+        ]
+        .concat(),
     )?;
     for (first, count, wg) in chunks(records, max_groups) {
         let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
@@ -705,8 +832,8 @@ impl Backend for VulkanBackend {
         };
         let max_groups = *max_groups;
         gpu.submit(|r| {
-            for g in groups.iter() {
-                r.zero(&g.grad);
+            for p in groups.iter().flat_map(|g| g.parts.iter()) {
+                r.zero(&p.grad);
             }
             r.barrier();
             if n > 0 {
@@ -727,8 +854,8 @@ impl Backend for VulkanBackend {
                     &pipelines.ray_train,
                     &[
                         model_words,
-                        &groups[4].params,
-                        &groups[4].grad,
+                        &groups[4].lo().params,
+                        &groups[4].lo().grad,
                         input,
                         samples,
                         output,
@@ -796,7 +923,7 @@ impl Backend for VulkanBackend {
             r.barrier();
             let set = r.bind(
                 &pipelines.ray_render,
-                &[model_words, &groups[4].params, input, samples, output],
+                &[model_words, &groups[4].lo().params, input, samples, output],
             )?;
             for (first, count, wg) in chunks(n, max_groups) {
                 let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
@@ -811,10 +938,9 @@ impl Backend for VulkanBackend {
     fn read_params(&mut self, group: Group, out: &mut [f32]) -> Result<(), VulkanError> {
         let g = &self.groups[group as usize];
         check_len(group.name(), out.len(), g.len)?;
-        let mut bytes = vec![0u8; g.len * 4];
-        download(&mut self.gpu, &mut self.staging, &g.params, &mut bytes)?;
-        for (x, b) in out.iter_mut().zip(bytes.as_chunks::<4>().0) {
-            *x = f32::from_le_bytes(*b);
+        for p in &g.parts {
+            let r = p.start..p.start + p.len;
+            download_f32(&mut self.gpu, &mut self.staging, &p.params, &mut out[r])?;
         }
         Ok(())
     }
@@ -822,10 +948,15 @@ impl Backend for VulkanBackend {
     fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), VulkanError> {
         let g = &self.groups[group as usize];
         check_len(group.name(), out.len(), g.len)?;
-        let mut bytes = vec![0u8; g.len * 8];
-        download(&mut self.gpu, &mut self.staging, &g.grad, &mut bytes)?;
-        for (x, b) in out.iter_mut().zip(bytes.as_chunks::<8>().0) {
-            *x = i64::from_le_bytes(*b);
+        for p in &g.parts {
+            let mut bytes = vec![0u8; p.len * 8];
+            download(&mut self.gpu, &mut self.staging, &p.grad, &mut bytes)?;
+            for (x, b) in out[p.start..p.start + p.len]
+                .iter_mut()
+                .zip(bytes.as_chunks::<8>().0)
+            {
+                *x = i64::from_le_bytes(*b);
+            }
         }
         Ok(())
     }
@@ -838,17 +969,21 @@ impl Backend for VulkanBackend {
     ) -> Result<(), VulkanError> {
         let g = &mut self.groups[group as usize];
         check_len(group.name(), data.len(), g.len)?;
-        upload(
-            &mut self.gpu,
-            &mut self.staging,
-            &mut g.params,
-            &f32_bytes(data),
-        )?;
+        for p in g.parts.iter_mut() {
+            upload(
+                &mut self.gpu,
+                &mut self.staging,
+                &mut p.params,
+                &f32_bytes(&data[p.start..p.start + p.len]),
+            )?;
+        }
         if reset_adam {
-            let (m, v): (&Buffer, &Buffer) = (&g.m, &g.v);
+            let parts = &g.parts;
             self.gpu.submit(|r| {
-                r.zero(m);
-                r.zero(v);
+                for p in parts {
+                    r.zero(&p.m);
+                    r.zero(&p.v);
+                }
                 Ok(())
             })?;
         }
@@ -958,8 +1093,8 @@ impl Backend for VulkanBackend {
         let images: &Buffer = images;
         let max_groups = *max_groups;
         gpu.submit(|r| {
-            for g in groups.iter() {
-                r.zero(&g.grad);
+            for p in groups.iter().flat_map(|g| g.parts.iter()) {
+                r.zero(&p.grad);
             }
             r.barrier();
             if n > 0 {
@@ -986,8 +1121,8 @@ impl Backend for VulkanBackend {
                     &pipelines.pixel_train,
                     &[
                         model_words,
-                        &groups[4].params,
-                        &groups[4].grad,
+                        &groups[4].lo().params,
+                        &groups[4].lo().grad,
                         window,
                         pixels,
                         images,

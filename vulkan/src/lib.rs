@@ -19,7 +19,7 @@ pub mod device;
 mod error;
 mod raw;
 
-pub use backend::VulkanBackend;
+pub use backend::{VulkanBackend, VulkanOptions};
 pub use device::{describe_devices, list_devices, DeviceInfo, DeviceKind, DEVICE_ENV};
 pub use error::VulkanError;
 
@@ -140,6 +140,62 @@ mod tests {
             Capability::VulkanMemoryModel,
         ] {
             assert!(caps.contains(&c), "{c:?} missing from {caps:?}");
+        }
+    }
+
+    /// Each entry point uses every storage-buffer binding at most once and none past its
+    /// declared count (the counts the host's pipelines are built with). Caught a renumbering
+    /// slip that gave `pixel_train_cs` two parameters at binding 8 and one at 9: lavapipe ran
+    /// it without complaint, reading garbage.
+    #[test]
+    fn entry_point_bindings_are_distinct_and_in_range() {
+        let declared: BTreeMap<&str, u32> = [
+            (entry::PROBE, 2),
+            (entry::FIXED_ACCUMULATE, 2),
+            (entry::MLP_FORWARD, 4),
+            (entry::GRID_FORWARD, 4),
+            (entry::SAMPLE_FORWARD, 10),
+            (entry::RAY_TRAIN, 6),
+            (entry::SAMPLE_BACKWARD, 17),
+            (entry::RAY_RENDER, 5),
+            (entry::PIXEL_RAYS, 4),
+            (entry::PIXEL_TRAIN, 9),
+            (entry::ADAM, 4),
+            (entry::SDF_QUERY, 10),
+            (entry::COLOR_QUERY, 10),
+        ]
+        .into_iter()
+        .collect();
+        let m = module();
+        let mut binding = BTreeMap::new();
+        for a in &m.annotations {
+            if let [Operand::IdRef(id), Operand::Decoration(Decoration::Binding), Operand::LiteralBit32(b)] =
+                a.operands.as_slice()
+            {
+                binding.insert(*id, *b);
+            }
+        }
+        for e in &m.entry_points {
+            let name = match &e.operands[2] {
+                Operand::LiteralString(s) => s.clone(),
+                _ => unreachable!(),
+            };
+            let count = declared[name.as_str()];
+            let mut used: Vec<u32> = e.operands[3..]
+                .iter()
+                .filter_map(|o| match o {
+                    Operand::IdRef(id) => binding.get(id).copied(),
+                    _ => None,
+                })
+                .collect();
+            used.sort_unstable();
+            let n = used.len();
+            used.dedup();
+            assert_eq!(used.len(), n, "{name}: a binding used twice: {used:?}");
+            assert!(
+                used.iter().all(|&b| b < count),
+                "{name}: bindings {used:?} past its {count}"
+            );
         }
     }
 

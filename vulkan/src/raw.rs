@@ -56,8 +56,8 @@ impl PhysicalInfo {
         if self.compute_queue_family.is_none() {
             m.push("a compute queue");
         }
-        if self.max_per_stage_storage_buffers < 13 {
-            m.push("13 storage buffers per stage");
+        if self.max_per_stage_storage_buffers < 17 {
+            m.push("17 storage buffers per stage");
         }
         if self.max_push_constants_size < 32 {
             m.push("32 bytes of push constants");
