@@ -89,6 +89,9 @@ pub struct MapSummary {
     pub mesh_ground_truth: Option<String>,
     pub mesh_error: Option<String>,
     pub mesh_faces: usize,
+    /// SDF level of `mesh.ply` (m) and the trained beta it was derived from.
+    pub mesh_level: f32,
+    pub beta: f32,
     pub seconds_total: f64,
     pub seconds_mapping: f64,
     pub seconds_per_iteration: f64,
@@ -104,10 +107,36 @@ pub fn build_backend(
     k: &Intrinsics,
     threads: usize,
 ) -> anyhow::Result<ParallelCpuBackend> {
+    build_backend_at(config, aabb, k, threads, None)
+}
+
+/// [`build_backend`] whose geometric initialisation (`model.geo_init`) centres its sphere on
+/// `center` (default: the box centre).
+pub fn build_backend_at(
+    config: &Config,
+    aabb: Aabb,
+    k: &Intrinsics,
+    threads: usize,
+    center: Option<[f32; 3]>,
+) -> anyhow::Result<ParallelCpuBackend> {
     let mc = config.model_config(aabb)?;
     let layout = ModelLayout::new(&mc).map_err(|e| anyhow::anyhow!("model: {e}"))?;
-    let data = ModelData::new(layout, config.seed as u32)
+    let mut data = ModelData::new(layout, config.seed as u32)
         .map_err(|e| anyhow::anyhow!("model init: {e}"))?;
+    if config.model.geo_init == "sphere" {
+        let c = center.unwrap_or_else(|| [0, 1, 2].map(|a| 0.5 * (aabb.min[a] + aabb.max[a])));
+        crate::geo_init::fit_sphere(
+            &mut data,
+            &crate::geo_init::SphereInit {
+                center: c,
+                radius: config.model.geo_init_radius,
+                iters: config.model.geo_init_iters,
+                points: 4096,
+                lr: 0.01,
+                seed: config.seed,
+            },
+        );
+    }
     let mapper = config.mapper_config()?;
     Ok(
         ParallelCpuBackend::new(data, config.adam_config(), threads)?.with_images(ImageStore {
@@ -324,7 +353,17 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     std::fs::create_dir_all(opts.out.join("renders"))
         .with_context(|| format!("creating {}", opts.out.display()))?;
 
-    let backend = build_backend(cfg, aabb, &k, opts.threads)?;
+    let center = {
+        let mut c = [0.0f32; 3];
+        for p in &poses {
+            let o = p.origin();
+            for a in 0..3 {
+                c[a] += o[a] / poses.len().max(1) as f32;
+            }
+        }
+        c
+    };
+    let backend = build_backend_at(cfg, aabb, &k, opts.threads, Some(center))?;
     let backend_name = backend.name().to_string();
     let threads = backend.threads();
     let params = backend.layout().param_count();
@@ -505,20 +544,9 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
 
     // mesh
     let backend = mapper.into_backend();
-    let mesh = crate::mesh::extract_mesh(
-        aabb,
-        cfg.eval.mesh_resolution,
-        |p: &[[f32; 3]]| {
-            let mut o = vec![0.0; p.len()];
-            backend.sdf(p, &mut o);
-            o
-        },
-        Some(|p: &[[f32; 3]]| {
-            let mut o = vec![[0.0; 3]; p.len()];
-            backend.color(p, &mut o);
-            o
-        }),
-    );
+    let beta = backend.data().params[Group::Beta as usize][0];
+    let mesh_level = cfg.surface_level(beta);
+    let mesh = map_mesh(&backend, aabb, cfg.eval.mesh_resolution, mesh_level);
     let mesh_path = opts.out.join("mesh.ply");
     mesh.write_ply(&mesh_path)?;
     let has_gt = opts.dataset.join("gt_mesh.ply").is_file() || ds.has_depth();
@@ -567,6 +595,8 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         mesh_ground_truth: mesh_gt,
         mesh_error: mesh_err,
         mesh_faces: mesh.faces.len(),
+        mesh_level,
+        beta,
         seconds_total: t_start.elapsed().as_secs_f64(),
         seconds_mapping: mapping_s,
         seconds_per_iteration: mapping_s / iterations.max(1) as f64,
@@ -578,6 +608,57 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     std::fs::write(&sp, serde_json::to_string_pretty(&summary)?)
         .with_context(|| format!("writing {}", sp.display()))?;
     Ok(summary)
+}
+
+/// Marching cubes on the SDF of `backend` minus `level`, with vertex colours.
+pub fn map_mesh(
+    backend: &ParallelCpuBackend,
+    aabb: Aabb,
+    resolution: f32,
+    level: f32,
+) -> crate::mesh::Mesh {
+    crate::mesh::extract_mesh(
+        aabb,
+        resolution,
+        |p: &[[f32; 3]]| {
+            let mut o = vec![0.0; p.len()];
+            backend.sdf(p, &mut o);
+            for x in &mut o {
+                *x -= level;
+            }
+            o
+        },
+        Some(|p: &[[f32; 3]]| {
+            let mut o = vec![[0.0; 3]; p.len()];
+            backend.color(p, &mut o);
+            o
+        }),
+    )
+}
+
+/// `himap mesh`: extracts the mesh of a saved map at `resolution` (default: its
+/// configuration's) and SDF `level` (default: [`Config::surface_level`]) into `out`.
+/// Returns the face count and the level used.
+pub fn mesh_saved_map(
+    map: &Path,
+    out: &Path,
+    resolution: Option<f32>,
+    level: Option<f32>,
+    threads: usize,
+) -> anyhow::Result<(usize, f32)> {
+    let (cfg, data) = load_map(map)?;
+    let aabb = data.layout.config.aabb;
+    let beta = data.params[Group::Beta as usize][0];
+    let level = level.unwrap_or_else(|| cfg.surface_level(beta));
+    let backend = ParallelCpuBackend::new(data, cfg.adam_config(), threads)?;
+    let mesh = map_mesh(
+        &backend,
+        aabb,
+        resolution.unwrap_or(cfg.eval.mesh_resolution),
+        level,
+    );
+    mesh.write_ply(out)?;
+    Ok((mesh.faces.len(), level))
 }
 
 /// Prints a short table of a summary.
@@ -597,8 +678,9 @@ pub fn summary_table(s: &MapSummary) -> String {
     match &s.mesh {
         Some(m) => {
             t += &format!(
-                "mesh ({} faces) vs {}: Accuracy {:.2} cm | Completion {:.2} cm | Completion ratio {:.1} %\n",
+                "mesh ({} faces, level {:.3} m) vs {}: Accuracy {:.2} cm | Completion {:.2} cm | Completion ratio {:.1} %\n",
                 s.mesh_faces,
+                s.mesh_level,
                 s.mesh_ground_truth.as_deref().unwrap_or("?"),
                 m.accuracy_cm,
                 m.completion_cm,
