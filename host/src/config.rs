@@ -169,10 +169,12 @@ pub struct EvalSection {
     pub renders: u32,
     /// Marching-cubes spacing (m) of `mesh.ply`.
     pub mesh_resolution: f32,
-    /// SDF value (m) of the extracted surface. Absent = the renderer's own surface level
-    /// ([`Config::surface_level`]): Hi-Map's density `beta sig(-beta s)` has no `delta t`
-    /// factor, so a sample is already half opaque at `s = ln(beta / ln 2 - 1) / beta`
-    /// (0.26 m at beta 10) and the field never needs to reach 0 in front of a surface.
+    /// SDF value (m) of the extracted surface. Absent = the level of the surfaces the field
+    /// renders: the median SDF at the rendered depth of 8 views spread over the sequence
+    /// (`himap::mapper_cli::rendered_surface_level`), else [`Config::surface_level`]. Hi-Map's
+    /// density `beta sig(-beta s)` has no `delta t` factor, so a sample is already half opaque
+    /// at `s = ln(beta / ln 2 - 1) / beta` (0.26 m at beta 10) and the field need not reach 0
+    /// in front of a surface (ICL gave an empty mesh at level 0).
     pub mesh_level: Option<f32>,
     /// Surface samples per mesh of Accuracy / Completion.
     pub mesh_samples: usize,

@@ -543,9 +543,16 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     csv.flush()?;
 
     // mesh
-    let backend = mapper.into_backend();
+    let mut backend = mapper.into_backend();
     let beta = backend.data().params[Group::Beta as usize][0];
-    let mesh_level = cfg.surface_level(beta);
+    let mesh_level = match cfg.eval.mesh_level {
+        Some(l) => l,
+        None => {
+            let lk = ek.resized((ek.width / 2).max(1), (ek.height / 2).max(1));
+            rendered_surface_level(&mut backend, &lk, &poses, 8)?
+                .unwrap_or_else(|| cfg.surface_level(beta))
+        }
+    };
     let mesh = map_mesh(&backend, aabb, cfg.eval.mesh_resolution, mesh_level);
     let mesh_path = opts.out.join("mesh.ply");
     mesh.write_ply(&mesh_path)?;
@@ -608,6 +615,43 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     std::fs::write(&sp, serde_json::to_string_pretty(&summary)?)
         .with_context(|| format!("writing {}", sp.display()))?;
     Ok(summary)
+}
+
+/// The SDF level of the surfaces the field renders, estimated without ground truth: `views`
+/// poses spread over the sequence are rendered at `k`; every pixel with opacity > 0.9 gives
+/// the point at its rendered depth (normalised by the opacity), and the level is the median
+/// SDF over these points. `None` when no pixel is opaque. Hi-Map's density proxy has no
+/// `delta t`, so where the field draws its surfaces depends on beta and on the sample spacing
+/// (not only on the zero crossing); this is the level `mesh.ply` is extracted at by default.
+pub fn rendered_surface_level(
+    backend: &mut ParallelCpuBackend,
+    k: &Intrinsics,
+    poses: &[Pose],
+    views: usize,
+) -> anyhow::Result<Option<f32>> {
+    if poses.is_empty() || views == 0 {
+        return Ok(None);
+    }
+    let mut pts = Vec::new();
+    for v in 0..views {
+        let pose = &poses[(v * poses.len()) / views];
+        let out = render_view(backend, k, pose)?;
+        for (i, r) in out.iter().enumerate() {
+            if r.opacity > 0.9 && r.depth > 0.0 && r.depth.is_finite() {
+                let (u, w) = ((i % k.width as usize) as f32, (i / k.width as usize) as f32);
+                let (o, d) = pose.ray(k, u, w);
+                let t = r.depth / r.opacity;
+                pts.push([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]);
+            }
+        }
+    }
+    if pts.is_empty() {
+        return Ok(None);
+    }
+    let mut sdf = vec![0.0f32; pts.len()];
+    backend.sdf(&pts, &mut sdf);
+    sdf.sort_by(f32::total_cmp);
+    Ok(Some(sdf[sdf.len() / 2]))
 }
 
 /// Marching cubes on the SDF of `backend` minus `level`, with vertex colours.
