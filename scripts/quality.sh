@@ -4,13 +4,14 @@
 # one ablation table; every run's outputs (metrics.csv, summary.json, mesh.ply, renders/) stay
 # in $OUT.
 #
-# Wall time on the 2-core development VM (release build, --threads 2, idle machine; about
-# twice as long with --threads 1 or when the other core is busy):
-#   demo room (60 frames 128x96)                        about 3 min
-#   ICL living room 1 (frames 0..30, 320x240)           about 2 min
-#   7-Scenes redkitchen (frames 0..30, 320x240)         about 2 min
-#   ablations on ICL: 4 more runs                       about 8 min
-#   total                                               about 15 min
+# Time on the 2-core development VM (release build), estimated from the CPU time of single-
+# thread runs (about 150-250 s each; the script was not timed end to end on an idle machine);
+# with THREADS=2 roughly half, with the other core busy roughly the single-thread time:
+#   demo room (60 frames 128x96)                        about 2-4 min
+#   ICL living room 1 (frames 0..30, 320x240)           about 2-4 min
+#   7-Scenes redkitchen (frames 0..30, 320x240)         about 2-4 min
+#   ablations on ICL: 4 more runs                       about 8-16 min
+#   total                                               about 15-30 min
 #
 # Usage: scripts/quality.sh [--no-ablation] [--only demo|icl|7scenes] [--table-only]
 #   --table-only prints the tables from the summaries already in $OUT without running.
