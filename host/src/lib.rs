@@ -11,6 +11,7 @@ pub mod backend;
 pub mod bench;
 pub mod config;
 pub mod dump;
+pub mod geo_init;
 pub mod mapper_cli;
 pub mod select;
 pub mod train_demo;

@@ -91,6 +91,24 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         threads: usize,
     },
+    /// Extract the mesh of a saved map (map.safetensors of `himap map`).
+    Mesh {
+        /// The map file.
+        #[arg(long)]
+        map: PathBuf,
+        /// Output PLY.
+        #[arg(long)]
+        out: PathBuf,
+        /// Marching-cubes spacing in metres (default: the map's eval.mesh_resolution).
+        #[arg(long)]
+        resolution: Option<f32>,
+        /// SDF level of the surface (default: the renderer's surface level for the map's beta).
+        #[arg(long, allow_hyphen_values = true)]
+        level: Option<f32>,
+        /// Worker threads (0 = all cores).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+    },
     /// Train a small field on a built-in analytic target and print the loss going down.
     TrainDemo {
         /// Training steps.
@@ -320,6 +338,20 @@ fn main() -> anyhow::Result<()> {
                 threads,
             };
             himap::bench::run_bench(&opts, &mut std::io::stdout())?;
+        }
+        Command::Mesh {
+            map,
+            out,
+            resolution,
+            level,
+            threads,
+        } => {
+            let (faces, level) =
+                himap::mapper_cli::mesh_saved_map(&map, &out, resolution, level, threads)?;
+            println!(
+                "wrote {} ({faces} faces, level {level:.4} m)",
+                out.display()
+            );
         }
         Command::TrainDemo {
             steps,

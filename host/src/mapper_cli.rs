@@ -92,6 +92,9 @@ pub struct MapSummary {
     pub mesh_ground_truth: Option<String>,
     pub mesh_error: Option<String>,
     pub mesh_faces: usize,
+    /// SDF level of `mesh.ply` (m) and the trained beta it was derived from.
+    pub mesh_level: f32,
+    pub beta: f32,
     pub seconds_total: f64,
     pub seconds_mapping: f64,
     pub seconds_per_iteration: f64,
@@ -107,10 +110,19 @@ pub fn build_backend(
     k: &Intrinsics,
     threads: usize,
 ) -> anyhow::Result<ParallelCpuBackend> {
-    let mc = config.model_config(aabb)?;
-    let layout = ModelLayout::new(&mc).map_err(|e| anyhow::anyhow!("model: {e}"))?;
-    let data = ModelData::new(layout, config.seed as u32)
-        .map_err(|e| anyhow::anyhow!("model init: {e}"))?;
+    build_backend_at(config, aabb, k, threads, None)
+}
+
+/// [`build_backend`] whose geometric initialisation (`model.geo_init`) centres its sphere on
+/// `center` (default: the box centre).
+pub fn build_backend_at(
+    config: &Config,
+    aabb: Aabb,
+    k: &Intrinsics,
+    threads: usize,
+    center: Option<[f32; 3]>,
+) -> anyhow::Result<ParallelCpuBackend> {
+    let data = initial_data(config, aabb, center)?;
     let mapper = config.mapper_config()?;
     Ok(
         ParallelCpuBackend::new(data, config.adam_config(), threads)?.with_images(ImageStore {
@@ -119,6 +131,34 @@ pub fn build_backend(
             slots: mapper.slots_needed(),
         }),
     )
+}
+
+/// The model a run starts from: seeded initialisation, then the geometric initialisation of
+/// `model.geo_init` (its sphere centred on `center`, default the box centre).
+pub fn initial_data(
+    config: &Config,
+    aabb: Aabb,
+    center: Option<[f32; 3]>,
+) -> anyhow::Result<ModelData> {
+    let mc = config.model_config(aabb)?;
+    let layout = ModelLayout::new(&mc).map_err(|e| anyhow::anyhow!("model: {e}"))?;
+    let mut data = ModelData::new(layout, config.seed as u32)
+        .map_err(|e| anyhow::anyhow!("model init: {e}"))?;
+    if config.model.geo_init == "sphere" {
+        let c = center.unwrap_or_else(|| [0, 1, 2].map(|a| 0.5 * (aabb.min[a] + aabb.max[a])));
+        crate::geo_init::fit_sphere(
+            &mut data,
+            &crate::geo_init::SphereInit {
+                center: c,
+                radius: config.model.geo_init_radius,
+                iters: config.model.geo_init_iters,
+                points: 4096,
+                lr: 0.01,
+                seed: config.seed,
+            },
+        );
+    }
+    Ok(data)
 }
 
 /// Renders a view (colour, depth, opacity per pixel, row-major).
@@ -332,10 +372,17 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     if opts.progress {
         eprintln!("backend: {}", decision.reason);
     }
-    let mc = cfg.model_config(aabb)?;
-    let layout = ModelLayout::new(&mc).map_err(|e| anyhow::anyhow!("model: {e}"))?;
-    let data =
-        ModelData::new(layout, cfg.seed as u32).map_err(|e| anyhow::anyhow!("model init: {e}"))?;
+    let center = {
+        let mut c = [0.0f32; 3];
+        for p in &poses {
+            let o = p.origin();
+            for a in 0..3 {
+                c[a] += o[a] / poses.len().max(1) as f32;
+            }
+        }
+        c
+    };
+    let data = initial_data(cfg, aabb, Some(center))?;
     let store = ImageStore {
         width: k.width,
         height: k.height,
@@ -347,6 +394,7 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         aabb,
         box_src,
         reason: decision.reason.clone(),
+        poses,
     };
     if decision.vulkan {
         let backend = crate::select::vulkan_backend(&data, cfg.adam_config(), store)
@@ -367,6 +415,7 @@ struct RunContext {
     aabb: Aabb,
     box_src: &'static str,
     reason: String,
+    poses: Vec<Pose>,
 }
 
 /// The mapping loop, evaluation and outputs of [`run_map`] on one backend.
@@ -385,6 +434,7 @@ where
         aabb,
         box_src,
         reason,
+        poses,
     } = ctx;
     let cfg = &opts.config;
     let n = ds.len();
@@ -567,30 +617,21 @@ where
     csv.flush()?;
 
     // mesh
-    let backend = std::cell::RefCell::new(mapper.into_backend());
-    let query_error = std::cell::RefCell::new(None::<anyhow::Error>);
-    let mesh = crate::mesh::extract_mesh(
-        aabb,
-        cfg.eval.mesh_resolution,
-        |p: &[[f32; 3]]| {
-            let mut o = vec![0.0; p.len()];
-            if let Err(e) = backend.borrow_mut().query_sdf(p, &mut o) {
-                query_error.borrow_mut().get_or_insert(e);
-            }
-            o
-        },
-        Some(|p: &[[f32; 3]]| {
-            let mut o = vec![[0.0; 3]; p.len()];
-            if let Err(e) = backend.borrow_mut().query_color(p, &mut o) {
-                query_error.borrow_mut().get_or_insert(e);
-            }
-            o
-        }),
-    );
-    if let Some(e) = query_error.into_inner() {
-        return Err(e.context("querying the field for the mesh"));
-    }
-    let mut backend = backend.into_inner();
+    let mut backend = mapper.into_backend();
+    let beta = {
+        let mut b = [0.0f32; 1];
+        backend.read_params(Group::Beta, &mut b)?;
+        b[0]
+    };
+    let mesh_level = match cfg.eval.mesh_level {
+        Some(l) => l,
+        None => {
+            let lk = ek.resized((ek.width / 2).max(1), (ek.height / 2).max(1));
+            rendered_surface_level(&mut backend, &lk, &poses, 8)?
+                .unwrap_or_else(|| cfg.surface_level(beta))
+        }
+    };
+    let mesh = map_mesh(&mut backend, aabb, cfg.eval.mesh_resolution, mesh_level)?;
     let mesh_path = opts.out.join("mesh.ply");
     mesh.write_ply(&mesh_path)?;
     let has_gt = opts.dataset.join("gt_mesh.ply").is_file() || ds.has_depth();
@@ -640,6 +681,8 @@ where
         mesh_ground_truth: mesh_gt,
         mesh_error: mesh_err,
         mesh_faces: mesh.faces.len(),
+        mesh_level,
+        beta,
         seconds_total: t_start.elapsed().as_secs_f64(),
         seconds_mapping: mapping_s,
         seconds_per_iteration: mapping_s / iterations.max(1) as f64,
@@ -651,6 +694,107 @@ where
     std::fs::write(&sp, serde_json::to_string_pretty(&summary)?)
         .with_context(|| format!("writing {}", sp.display()))?;
     Ok(summary)
+}
+
+/// The SDF level of the surfaces the field renders, estimated without ground truth: `views`
+/// poses spread over the sequence are rendered at `k`; every pixel with opacity > 0.9 gives
+/// the point at its rendered depth (normalised by the opacity), and the level is the median
+/// SDF over these points. `None` when no pixel is opaque. Hi-Map's density proxy has no
+/// `delta t`, so where the field draws its surfaces depends on beta and on the sample spacing
+/// (not only on the zero crossing); this is the level `mesh.ply` is extracted at by default.
+pub fn rendered_surface_level<B: MapBackend>(
+    backend: &mut B,
+    k: &Intrinsics,
+    poses: &[Pose],
+    views: usize,
+) -> anyhow::Result<Option<f32>>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    if poses.is_empty() || views == 0 {
+        return Ok(None);
+    }
+    let mut pts = Vec::new();
+    for v in 0..views {
+        let pose = &poses[(v * poses.len()) / views];
+        let out = render_view(backend, k, pose)?;
+        for (i, r) in out.iter().enumerate() {
+            if r.opacity > 0.9 && r.depth > 0.0 && r.depth.is_finite() {
+                let (u, w) = ((i % k.width as usize) as f32, (i / k.width as usize) as f32);
+                let (o, d) = pose.ray(k, u, w);
+                let t = r.depth / r.opacity;
+                pts.push([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]);
+            }
+        }
+    }
+    if pts.is_empty() {
+        return Ok(None);
+    }
+    let mut sdf = vec![0.0f32; pts.len()];
+    backend.query_sdf(&pts, &mut sdf)?;
+    sdf.sort_by(f32::total_cmp);
+    Ok(Some(sdf[sdf.len() / 2]))
+}
+
+/// Marching cubes on the SDF of `backend` minus `level`, with vertex colours.
+pub fn map_mesh<B: MapBackend>(
+    backend: &mut B,
+    aabb: Aabb,
+    resolution: f32,
+    level: f32,
+) -> anyhow::Result<crate::mesh::Mesh> {
+    let backend = std::cell::RefCell::new(backend);
+    let query_error = std::cell::RefCell::new(None::<anyhow::Error>);
+    let mesh = crate::mesh::extract_mesh(
+        aabb,
+        resolution,
+        |p: &[[f32; 3]]| {
+            let mut o = vec![0.0; p.len()];
+            if let Err(e) = backend.borrow_mut().query_sdf(p, &mut o) {
+                query_error.borrow_mut().get_or_insert(e);
+            }
+            for x in &mut o {
+                *x -= level;
+            }
+            o
+        },
+        Some(|p: &[[f32; 3]]| {
+            let mut o = vec![[0.0; 3]; p.len()];
+            if let Err(e) = backend.borrow_mut().query_color(p, &mut o) {
+                query_error.borrow_mut().get_or_insert(e);
+            }
+            o
+        }),
+    );
+    match query_error.into_inner() {
+        Some(e) => Err(e.context("querying the field for the mesh")),
+        None => Ok(mesh),
+    }
+}
+
+/// `himap mesh`: extracts the mesh of a saved map at `resolution` (default: its
+/// configuration's) and SDF `level` (default: [`Config::surface_level`]) into `out`.
+/// Returns the face count and the level used.
+pub fn mesh_saved_map(
+    map: &Path,
+    out: &Path,
+    resolution: Option<f32>,
+    level: Option<f32>,
+    threads: usize,
+) -> anyhow::Result<(usize, f32)> {
+    let (cfg, data) = load_map(map)?;
+    let aabb = data.layout.config.aabb;
+    let beta = data.params[Group::Beta as usize][0];
+    let level = level.unwrap_or_else(|| cfg.surface_level(beta));
+    let mut backend = ParallelCpuBackend::new(data, cfg.adam_config(), threads)?;
+    let mesh = map_mesh(
+        &mut backend,
+        aabb,
+        resolution.unwrap_or(cfg.eval.mesh_resolution),
+        level,
+    )?;
+    mesh.write_ply(out)?;
+    Ok((mesh.faces.len(), level))
 }
 
 /// Prints a short table of a summary.
@@ -670,8 +814,9 @@ pub fn summary_table(s: &MapSummary) -> String {
     match &s.mesh {
         Some(m) => {
             t += &format!(
-                "mesh ({} faces) vs {}: Accuracy {:.2} cm | Completion {:.2} cm | Completion ratio {:.1} %\n",
+                "mesh ({} faces, level {:.3} m) vs {}: Accuracy {:.2} cm | Completion {:.2} cm | Completion ratio {:.1} %\n",
                 s.mesh_faces,
+                s.mesh_level,
                 s.mesh_ground_truth.as_deref().unwrap_or("?"),
                 m.accuracy_cm,
                 m.completion_cm,
