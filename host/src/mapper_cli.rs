@@ -388,7 +388,7 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         height: k.height,
         slots: cfg.mapper_config()?.slots_needed(),
     };
-    let ctx = RunContext {
+    let mut ctx = RunContext {
         t_start,
         k,
         aabb,
@@ -397,15 +397,27 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         poses,
     };
     if decision.vulkan {
-        let backend = crate::select::vulkan_backend(&data, cfg.adam_config(), store)
-            .map_err(|e| anyhow::anyhow!("{e}"))
-            .context("starting the Vulkan backend (--backend cpu runs without a GPU)")?;
-        map_with(opts, ds.as_ref(), ctx, backend)
-    } else {
-        let backend =
-            ParallelCpuBackend::new(data, cfg.adam_config(), opts.threads)?.with_images(store);
-        map_with(opts, ds.as_ref(), ctx, backend)
+        match crate::select::vulkan_backend(&data, cfg.adam_config(), store) {
+            Ok(backend) => return map_with(opts, ds.as_ref(), ctx, backend),
+            // `auto` keeps going on the CPU when the device cannot take the model.
+            Err(e) if choice == BackendChoice::Auto => {
+                ctx.reason = format!(
+                    "{}; the Vulkan backend failed ({e}), using the CPU",
+                    ctx.reason
+                );
+                if opts.progress {
+                    eprintln!("backend: {}", ctx.reason);
+                }
+            }
+            Err(e) => {
+                return Err(anyhow::anyhow!("{e}"))
+                    .context("starting the Vulkan backend (--backend cpu runs without a GPU)")
+            }
+        }
     }
+    let backend =
+        ParallelCpuBackend::new(data, cfg.adam_config(), opts.threads)?.with_images(store);
+    map_with(opts, ds.as_ref(), ctx, backend)
 }
 
 /// What [`run_map`] computed before choosing the backend.
