@@ -112,6 +112,9 @@ pub struct MapperSection {
     pub pixels: u32,
     /// Sampled pixels stay this far (px) from the border (>= warp half + 1).
     pub border: u32,
+    /// Online updates: fraction of the pixels given to the frames new since the last update
+    /// (0 = spread evenly over the window, the paper's).
+    pub new_frame_share: f32,
     /// Colour weight during initialisation (0.1) and online (0.001); warp weight (1.0).
     pub lambda_color_init: f32,
     pub lambda_color: f32,
@@ -300,6 +303,7 @@ impl Config {
                 iters: m.iters,
                 pixels: m.pixels,
                 border: m.border,
+                new_frame_share: m.new_frame_share,
                 lambda_color_init: m.lambda_color_init,
                 lambda_color: m.lambda_color,
                 lambda_warp: m.lambda_warp,
@@ -545,6 +549,7 @@ impl Config {
             iters: m.iters,
             pixels: m.pixels,
             border: m.border,
+            new_frame_share: m.new_frame_share,
             lambda_color_init: m.lambda_color_init,
             lambda_color: m.lambda_color,
             lambda_warp: m.lambda_warp,
