@@ -40,6 +40,11 @@
 //! (`color_scale = 1 / pixels`), and so is the warping term (`warp_scale = 1 / pixels`; each
 //! pixel's warp term is DIM-SLAM's sum over its valid pairs; pixels with too few valid views
 //! count as zero).
+//!
+//! Online, `new_frame_share` (0 = off, the paper's even spread) gives the frames that arrived
+//! since the last update (the last `min(pending, window)` window frames) that fraction of the
+//! pixels (rounded, at least one per frame on each side), spread evenly over them as above;
+//! the other window frames share the rest evenly. The initialisation always spreads evenly.
 
 use crate::camera::{Intrinsics, Pose};
 use crate::mapping::{MappingLoss, PixelResult, PixelSample};
@@ -86,6 +91,9 @@ pub struct MapperConfig {
     pub pixels: u32,
     /// Sampled pixels keep this distance (px) from the image border (>= warp half + 1).
     pub border: u32,
+    /// Online updates: fraction of the pixels given to the frames new since the last update
+    /// (0 = spread evenly over the window, the paper's; in [0, 1]).
+    pub new_frame_share: f32,
     /// Colour weight during initialisation (0.1).
     pub lambda_color_init: f32,
     /// Colour weight online (0.001).
@@ -124,6 +132,7 @@ impl MapperConfig {
             iters: 20,
             pixels,
             border: 10,
+            new_frame_share: 0.0,
             lambda_color_init: 0.1,
             lambda_color: 0.001,
             lambda_warp: 1.0,
@@ -170,6 +179,11 @@ impl MapperConfig {
         }
         if self.pixels == 0 {
             return Err(Error::InvalidConfig("mapper: pixels must be >= 1"));
+        }
+        if !(self.new_frame_share >= 0.0 && self.new_frame_share <= 1.0) {
+            return Err(Error::InvalidConfig(
+                "mapper: new_frame_share must be in [0, 1]",
+            ));
         }
         let local = self.local_frames.max(self.init_frames);
         cap(
@@ -759,14 +773,35 @@ impl<'a, B: Backend> Mapper<'a, B> {
         Ok(n_cand as u32)
     }
 
-    fn sample_pixels(&mut self) {
+    fn sample_pixels(&mut self, kind: UpdateKind) {
         let n = self.win_len.max(1) as u32;
         let total = self.cfg.pixels;
+        // the frames new since the last update are the last `n_new` of the window
+        let n_new = if kind == UpdateKind::Online && self.cfg.new_frame_share > 0.0 {
+            (self.pending as u32).min(n)
+        } else {
+            0
+        };
+        if n_new == 0 || n_new == n || total < n {
+            self.sample_range(0, n, 0, total);
+            return;
+        }
+        let n_old = n - n_new;
+        let want = (self.cfg.new_frame_share * total as f32 + 0.5) as u32;
+        let new_total = want.clamp(n_new, total - n_old);
+        self.sample_range(0, n_old, 0, total - new_total);
+        self.sample_range(n_old, n, (total - new_total) as usize, new_total);
+    }
+
+    /// Draws `total` pixels spread evenly over window frames `f0..f1` into
+    /// `pixels[idx0..idx0 + total]` (`total / n` each, the first `total % n` one more).
+    fn sample_range(&mut self, f0: u32, f1: u32, idx0: usize, total: u32) {
+        let n = f1 - f0;
         let (w, h) = (self.k.width, self.k.height);
         let b = self.cfg.border;
         let per = total / n;
         let extra = total % n;
-        let mut idx = 0usize;
+        let mut idx = idx0;
         let mut f = 0;
         while f < n {
             let cnt = per + if f < extra { 1 } else { 0 };
@@ -774,7 +809,11 @@ impl<'a, B: Backend> Mapper<'a, B> {
             while c < cnt {
                 let u = b + self.rng.below(w - 2 * b);
                 let v = b + self.rng.below(h - 2 * b);
-                self.pixels[idx] = PixelSample { frame: f, u, v };
+                self.pixels[idx] = PixelSample {
+                    frame: f0 + f,
+                    u,
+                    v,
+                };
                 idx += 1;
                 c += 1;
             }
@@ -801,7 +840,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
         let mut last = first;
         let mut it = 0;
         while it < iters {
-            self.sample_pixels();
+            self.sample_pixels(kind);
             let init = kind == UpdateKind::Init;
             let loss = MappingLoss {
                 lambda_color: if init {
@@ -1205,6 +1244,57 @@ mod tests {
         // different iterations draw different pixels
         let calls = &m.backend().calls;
         assert_ne!(calls[0].pixels, calls[1].pixels);
+    }
+
+    #[test]
+    fn new_frames_get_their_share_of_pixels_online() {
+        let mut c = cfg();
+        c.new_frame_share = 0.5;
+        let (mut px, mut res) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 20);
+        let calls = &m.backend().calls;
+        assert_eq!(calls.len(), 7 + 4);
+        for (i, call) in calls.iter().enumerate() {
+            let n = call.slots.len();
+            let mut count = vec![0u32; n];
+            for p in &call.pixels {
+                count[p.frame as usize] += 1;
+            }
+            if i < 7 {
+                // initialisation: even over the 15 frames
+                assert!(count.iter().all(|&k| k == 4), "{count:?}");
+            } else {
+                // 1 keyframe + 15 local frames, 5 of them new: 30 pixels over the 5 new
+                // frames (6 each), 30 over the 11 others (3 for the first 8, 2 after)
+                assert_eq!(n, 16);
+                let want: Vec<u32> = (0..16)
+                    .map(|f| {
+                        if f >= 11 {
+                            6
+                        } else if f < 8 {
+                            3
+                        } else {
+                            2
+                        }
+                    })
+                    .collect();
+                assert_eq!(count, want);
+            }
+        }
+        let mut bad = cfg();
+        bad.new_frame_share = 1.5;
+        assert!(Mapper::new(
+            Mock::new(bad.slots_needed()),
+            bad,
+            intr(),
+            &mut px,
+            &mut res
+        )
+        .is_err());
     }
 
     #[test]
