@@ -489,10 +489,21 @@ fn point_on_ray(ray: &Ray, t: f32) -> [f32; 3] {
     ]
 }
 
+/// Where a ray crosses the scene box: entry and exit depths and its sample count
+/// (`layout.config.samples`, at most `MAX_SAMPLES`; 0 when the ray misses the box).
+#[inline(always)]
+pub fn ray_span(layout: &ModelLayout, ray: &Ray) -> (f32, f32, usize) {
+    let (near, far, hit) = render::ray_aabb(ray.origin, ray.dir, &layout.config.aabb);
+    if !(hit && far > near) {
+        return (near, far, 0);
+    }
+    let n = layout.config.samples as usize;
+    (near, far, if n > MAX_SAMPLES { MAX_SAMPLES } else { n })
+}
+
 /// The sample depths of a ray: `t[0..n]` stratified between the ray's entry into and exit
 /// from the scene box (jittered with `seed`/`ray_id` when `jitter`, bin centres otherwise).
-/// Returns `n`: `layout.config.samples`, or 0 when the ray misses the box. Stage 1 of
-/// [`ray_forward`]; the GPU runs it once per (ray, sample) invocation.
+/// Returns `n` ([`ray_span`]). Stage 1 of [`ray_forward`]; [`ray_sample`] gives one of them.
 pub fn ray_samples(
     layout: &ModelLayout,
     ray: &Ray,
@@ -501,14 +512,33 @@ pub fn ray_samples(
     jitter: bool,
     t: &mut [f32; MAX_SAMPLES],
 ) -> usize {
-    let (near, far, hit) = render::ray_aabb(ray.origin, ray.dir, &layout.config.aabb);
-    if !(hit && far > near) {
-        return 0;
+    let (near, far, n) = ray_span(layout, ray);
+    if n > 0 {
+        render::stratified_samples(near, far, n, seed, ray_id, jitter, t);
     }
-    let n = layout.config.samples as usize;
-    let n = if n > MAX_SAMPLES { MAX_SAMPLES } else { n };
-    render::stratified_samples(near, far, n, seed, ray_id, jitter, t);
     n
+}
+
+/// Depth `t_k` of sample `k` of a ray, the same bits as [`ray_samples`] writes, and the ray's
+/// sample count `n` (`t_k` is meaningless when `k >= n`). The GPU runs it once per (ray,
+/// sample) invocation.
+#[inline(always)]
+pub fn ray_sample(
+    layout: &ModelLayout,
+    ray: &Ray,
+    ray_id: u32,
+    seed: u32,
+    jitter: bool,
+    k: usize,
+) -> (f32, usize) {
+    let (near, far, n) = ray_span(layout, ray);
+    if k >= n {
+        return (far, n);
+    }
+    (
+        render::stratified_sample(near, far, n, seed, ray_id, jitter, k),
+        n,
+    )
 }
 
 /// Signed distance and colour at depth `t` along `ray` (stage 2 of [`ray_forward`], one
@@ -814,6 +844,28 @@ mod tests {
                 }
             })
             .collect()
+    }
+
+    #[test]
+    fn one_sample_equals_the_ray_s_samples() {
+        let layout = small(RenderMode::SdfDensity, crate::grid::GridKind::Factorized);
+        let mut t = [0.0f32; MAX_SAMPLES];
+        let mut hits = 0;
+        for (i, r) in rays(20).iter().enumerate() {
+            for jitter in [false, true] {
+                let n = ray_samples(&layout, r, i as u32, 7, jitter, &mut t);
+                hits += (n > 0) as usize;
+                for (k, want) in t.iter().enumerate().take(n) {
+                    let (tk, nk) = ray_sample(&layout, r, i as u32, 7, jitter, k);
+                    assert_eq!(
+                        (tk.to_bits(), nk),
+                        (want.to_bits(), n),
+                        "ray {i} sample {k}"
+                    );
+                }
+            }
+        }
+        assert!(hits > 10);
     }
 
     struct F64Sink {

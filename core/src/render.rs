@@ -128,21 +128,37 @@ pub fn stratified_samples(
 ) {
     let n = if n > MAX_SAMPLES { MAX_SAMPLES } else { n };
     let far = if far > near { far } else { near };
-    let step = if n > 0 { (far - near) / n as f32 } else { 0.0 };
     let mut i = 0;
     while i < MAX_SAMPLES {
-        if i < n {
-            let u = if jitter {
-                crate::rng::uniform(seed, ray_id, i as u32)
-            } else {
-                0.5
-            };
-            t[i] = math::clamp(near + (i as f32 + u) * step, near, far);
+        t[i] = if i < n {
+            stratified_sample(near, far, n, seed, ray_id, jitter, i)
         } else {
-            t[i] = far;
-        }
+            far
+        };
         i += 1;
     }
+}
+
+/// Sample `i < n` of [`stratified_samples`] alone (the same bits), for a kernel that handles
+/// one sample.
+#[inline(always)]
+pub fn stratified_sample(
+    near: f32,
+    far: f32,
+    n: usize,
+    seed: u32,
+    ray_id: u32,
+    jitter: bool,
+    i: usize,
+) -> f32 {
+    let far = if far > near { far } else { near };
+    let step = if n > 0 { (far - near) / n as f32 } else { 0.0 };
+    let u = if jitter {
+        crate::rng::uniform(seed, ray_id, i as u32)
+    } else {
+        0.5
+    };
+    math::clamp(near + (i as f32 + u) * step, near, far)
 }
 
 /// Forward results for one ray. Entries at and past `n` are zero.

@@ -43,6 +43,12 @@ pub struct ModelData {
 }
 
 impl ModelData {
+    /// Each group's parameters, in [`himap_core::model::Group::ALL`] order (what
+    /// `VulkanBackend::new` takes).
+    pub fn param_slices(&self) -> [&[f32]; NUM_GROUPS] {
+        core::array::from_fn(|g| &self.params[g][..])
+    }
+
     /// A freshly initialised model (deterministic for `seed`).
     pub fn new(layout: ModelLayout, seed: u32) -> Result<Self, himap_core::Error> {
         let lens = layout.group_lens();

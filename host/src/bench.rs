@@ -152,12 +152,7 @@ pub fn bench_vulkan(
 ) -> anyhow::Result<BenchRow> {
     let layout = ModelLayout::new(cfg)?;
     let data = ModelData::new(layout, 1)?;
-    let p = &data.params;
-    let mut be = himap_vulkan::VulkanBackend::new(
-        layout,
-        [&p[0], &p[1], &p[2], &p[3], &p[4]],
-        paper_adam(),
-    )?;
+    let mut be = himap_vulkan::VulkanBackend::new(layout, data.param_slices(), paper_adam())?;
     let t = measure(&mut be, cfg, rays, steps)?;
     let batch_bytes = rays * (10 + 6) * 4 + rays * cfg.samples as usize * 9 * 4;
     Ok(row(be.name(), name, cfg, &layout, rays, batch_bytes, t))

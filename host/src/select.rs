@@ -165,8 +165,7 @@ pub fn vulkan_backend(
     adam: [AdamConfig; NUM_GROUPS],
     store: ImageStore,
 ) -> Result<VulkanBackend, VulkanError> {
-    let p = &data.params;
-    VulkanBackend::new(data.layout, [&p[0], &p[1], &p[2], &p[3], &p[4]], adam)?.with_images(store)
+    VulkanBackend::new(data.layout, data.param_slices(), adam)?.with_images(store)
 }
 
 #[cfg(test)]

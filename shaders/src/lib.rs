@@ -319,6 +319,41 @@ impl<'a> SplitParams<'a> {
     }
 }
 
+/// The field's parameters as the [`PARAM_BINDINGS`] bindings give them (grid split points
+/// from the model words).
+pub struct Field<'a> {
+    pub geo: SplitParams<'a>,
+    pub app: SplitParams<'a>,
+    pub geometry_mlp: SplitParams<'a>,
+    pub appearance_mlp: SplitParams<'a>,
+    pub beta: f32,
+}
+
+impl<'a> Field<'a> {
+    /// `p`: the seven parameter bindings in [`PARAM_BINDINGS`] order.
+    #[inline(always)]
+    pub fn new(model_words: &[u32], p: [&'a [f32]; PARAM_BINDINGS]) -> Self {
+        Self {
+            geo: SplitParams::new(p[0], p[1], words::split(model_words, 0)),
+            app: SplitParams::new(p[2], p[3], words::split(model_words, 1)),
+            geometry_mlp: SplitParams::whole(p[4]),
+            appearance_mlp: SplitParams::whole(p[5]),
+            beta: first_or_zero(p[6]),
+        }
+    }
+
+    #[inline(always)]
+    pub fn params(&self) -> Params<'_, SplitParams<'a>> {
+        Params {
+            geometry_grid: &self.geo,
+            appearance_grid: &self.app,
+            geometry_mlp: &self.geometry_mlp,
+            appearance_mlp: &self.appearance_mlp,
+            beta: self.beta,
+        }
+    }
+}
+
 impl ParamRead for SplitParams<'_> {
     #[inline(always)]
     fn at(&self, i: usize) -> f32 {
@@ -497,59 +532,50 @@ pub fn sample_forward_cs(
     let per = samples_per_ray(&layout);
     let (r, k) = (i / per, i % per);
     let ray = read_ray(rays, r);
-    let mut t = [0.0f32; MAX_SAMPLES];
-    let n = model::ray_samples(&layout, &ray, r as u32, pc.seed, pc.jitter != 0, &mut t);
+    let (t, n) = model::ray_sample(&layout, &ray, r as u32, pc.seed, pc.jitter != 0, k);
     if k >= n || (i + 1) * SAMPLE_FLOATS > samples.len() {
         return;
     }
-    let geo = SplitParams::new(
-        p_geometry_grid,
-        p_geometry_grid_hi,
-        words::split(model_words, 0),
+    let field = Field::new(
+        model_words,
+        [
+            p_geometry_grid,
+            p_geometry_grid_hi,
+            p_appearance_grid,
+            p_appearance_grid_hi,
+            p_geometry_mlp,
+            p_appearance_mlp,
+            p_beta,
+        ],
     );
-    let app = SplitParams::new(
-        p_appearance_grid,
-        p_appearance_grid_hi,
-        words::split(model_words, 1),
-    );
-    let gm = SplitParams::whole(p_geometry_mlp);
-    let am = SplitParams::whole(p_appearance_mlp);
-    let params = Params {
-        geometry_grid: &geo,
-        appearance_grid: &app,
-        geometry_mlp: &gm,
-        appearance_mlp: &am,
-        beta: first_or_zero(p_beta),
-    };
+    let params = field.params();
     let mut scratch = SampleScratch::new();
-    let (sdf, rgb) = model::sample_forward(&layout, &params, &ray, t[k], &mut scratch);
+    let (sdf, rgb) = model::sample_forward(&layout, &params, &ray, t, &mut scratch);
     let b = i * SAMPLE_FLOATS;
-    samples[b] = t[k];
+    samples[b] = t;
     samples[b + 1] = sdf;
     samples[b + 2] = rgb[0];
     samples[b + 3] = rgb[1];
     samples[b + 4] = rgb[2];
 }
 
-/// Rebuilds a ray's [`RayCache`] from its sample records (the `t` are recomputed, which gives
-/// the same bits as the stored ones) and composites it.
+/// Rebuilds a ray's [`RayCache`] from the sample records [`sample_forward_cs`] wrote in the
+/// same submission (`n` from `model::ray_span`) and composites it.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn load_ray(
     layout: &ModelLayout,
     beta: f32,
     ray: &Ray,
     r: usize,
-    seed: u32,
-    jitter: bool,
     samples: &[f32],
     cache: &mut RayCache,
 ) {
     let per = samples_per_ray(layout);
-    cache.n = model::ray_samples(layout, ray, r as u32, seed, jitter, &mut cache.t);
+    cache.n = model::ray_span(layout, ray).2;
     let mut k = 0;
     while k < cache.n {
         let b = (r * per + k) * SAMPLE_FLOATS;
+        cache.t[k] = float_at(samples, b);
         cache.sdf[k] = float_at(samples, b + 1);
         cache.rgb[k] = [
             float_at(samples, b + 2),
@@ -614,7 +640,7 @@ pub fn ray_train_cs(
     let beta = first_or_zero(p_beta);
     let ray = read_ray(rays, r);
     let mut cache = RayCache::new();
-    load_ray(&layout, beta, &ray, r, pc.seed, true, samples, &mut cache);
+    load_ray(&layout, beta, &ray, r, samples, &mut cache);
     let loss = LossConfig {
         lambda_color: pc.lambda_color,
         lambda_depth: pc.lambda_depth,
@@ -694,32 +720,26 @@ pub fn sample_backward_cs(
     let layout = words::model_layout_from_words(model_words, 0);
     let per = samples_per_ray(&layout);
     let ray = read_ray(rays, i / per);
-    let geo = SplitParams::new(
-        p_geometry_grid,
-        p_geometry_grid_hi,
-        words::split(model_words, 0),
+    let field = Field::new(
+        model_words,
+        [
+            p_geometry_grid,
+            p_geometry_grid_hi,
+            p_appearance_grid,
+            p_appearance_grid_hi,
+            p_geometry_mlp,
+            p_appearance_mlp,
+            p_beta,
+        ],
     );
-    let app = SplitParams::new(
-        p_appearance_grid,
-        p_appearance_grid_hi,
-        words::split(model_words, 1),
-    );
-    let gm = SplitParams::whole(p_geometry_mlp);
-    let am = SplitParams::whole(p_appearance_mlp);
-    let params = Params {
-        geometry_grid: &geo,
-        appearance_grid: &app,
-        geometry_mlp: &gm,
-        appearance_mlp: &am,
-        beta: first_or_zero(p_beta),
-    };
+    let params = field.params();
     let mut sink = AtomicModelSink {
         geometry_grid: g_geometry_grid,
         geometry_grid_hi: g_geometry_grid_hi,
-        geometry_split: geo.split,
+        geometry_split: field.geo.split,
         appearance_grid: g_appearance_grid,
         appearance_grid_hi: g_appearance_grid_hi,
-        appearance_split: app.split,
+        appearance_split: field.app.split,
         geometry_mlp: g_geometry_mlp,
         appearance_mlp: g_appearance_mlp,
         beta: g_beta,
@@ -759,16 +779,7 @@ pub fn ray_render_cs(
     let layout = words::model_layout_from_words(model_words, 0);
     let ray = read_ray(rays, r);
     let mut cache = RayCache::new();
-    load_ray(
-        &layout,
-        first_or_zero(p_beta),
-        &ray,
-        r,
-        0,
-        false,
-        samples,
-        &mut cache,
-    );
+    load_ray(&layout, first_or_zero(p_beta), &ray, r, samples, &mut cache);
     write_result(
         results,
         r,
@@ -904,16 +915,7 @@ pub fn pixel_train_cs(
     if (px.frame as usize) < n {
         let ray = read_ray(pixel_rays, i);
         let mut cache = RayCache::new();
-        load_ray(
-            &layout,
-            beta,
-            &ray,
-            i,
-            loss.seed,
-            true,
-            pixel_samples,
-            &mut cache,
-        );
+        load_ray(&layout, beta, &ray, i, pixel_samples, &mut cache);
         let (r, d_color, d_depth) =
             mapping::pixel_loss(&window, px, &ray, &cache.out, cache.n, &loss);
         res = r;
@@ -978,25 +980,19 @@ pub fn sdf_query_cs(
         return;
     }
     let layout = words::model_layout_from_words(model_words, 0);
-    let geo = SplitParams::new(
-        p_geometry_grid,
-        p_geometry_grid_hi,
-        words::split(model_words, 0),
+    let field = Field::new(
+        model_words,
+        [
+            p_geometry_grid,
+            p_geometry_grid_hi,
+            p_appearance_grid,
+            p_appearance_grid_hi,
+            p_geometry_mlp,
+            p_appearance_mlp,
+            p_beta,
+        ],
     );
-    let app = SplitParams::new(
-        p_appearance_grid,
-        p_appearance_grid_hi,
-        words::split(model_words, 1),
-    );
-    let gm = SplitParams::whole(p_geometry_mlp);
-    let am = SplitParams::whole(p_appearance_mlp);
-    let params = Params {
-        geometry_grid: &geo,
-        appearance_grid: &app,
-        geometry_mlp: &gm,
-        appearance_mlp: &am,
-        beta: first_or_zero(p_beta),
-    };
+    let params = field.params();
     let p = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
     let mut scratch = SampleScratch::new();
     out[i] = model::sdf_at(&layout, &params, p, &mut scratch);
@@ -1028,25 +1024,19 @@ pub fn color_query_cs(
         return;
     }
     let layout = words::model_layout_from_words(model_words, 0);
-    let geo = SplitParams::new(
-        p_geometry_grid,
-        p_geometry_grid_hi,
-        words::split(model_words, 0),
+    let field = Field::new(
+        model_words,
+        [
+            p_geometry_grid,
+            p_geometry_grid_hi,
+            p_appearance_grid,
+            p_appearance_grid_hi,
+            p_geometry_mlp,
+            p_appearance_mlp,
+            p_beta,
+        ],
     );
-    let app = SplitParams::new(
-        p_appearance_grid,
-        p_appearance_grid_hi,
-        words::split(model_words, 1),
-    );
-    let gm = SplitParams::whole(p_geometry_mlp);
-    let am = SplitParams::whole(p_appearance_mlp);
-    let params = Params {
-        geometry_grid: &geo,
-        appearance_grid: &app,
-        geometry_mlp: &gm,
-        appearance_mlp: &am,
-        beta: first_or_zero(p_beta),
-    };
+    let params = field.params();
     let p = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
     let mut scratch = SampleScratch::new();
     let c = model::color_at(&layout, &params, p, &mut scratch);

@@ -25,7 +25,7 @@ use himap_vulkan::{VulkanBackend, VulkanError, VulkanOptions};
 /// machine has no usable Vulkan device. With `HIMAP_REQUIRE_VULKAN=1` a missing device is a
 /// test failure. Errors that are not about device availability always fail.
 fn vulkan_or_skip(data: &ModelData, adam: [AdamConfig; NUM_GROUPS]) -> Option<VulkanBackend> {
-    let params: [&[f32]; NUM_GROUPS] = core::array::from_fn(|g| &data.params[g][..]);
+    let params = data.param_slices();
     match VulkanBackend::new(data.layout, params, adam) {
         Ok(b) => Some(b),
         Err(
@@ -722,8 +722,7 @@ fn grids_split_across_two_bindings_match_cpu() {
         return;
     }
     drop(probe);
-    let p = &data.params;
-    let params = [&p[0][..], &p[1][..], &p[2][..], &p[3][..], &p[4][..]];
+    let params = data.param_slices();
     let options = VulkanOptions {
         max_binding_bytes: Some(part as u64 * 8),
     };

@@ -33,7 +33,7 @@
 
 use crate::device;
 use crate::error::VulkanError;
-use crate::raw::{Buffer, Gpu, Memory, Pipeline, ShaderModule};
+use crate::raw::{Buffer, Gpu, Memory, Pipeline, Recorder, Set, ShaderModule};
 use crate::{entry, words, WORKGROUP_SIZE};
 use himap_core::adam::{AdamConfig, AdamStep};
 use himap_core::error::check_len;
@@ -569,10 +569,7 @@ impl VulkanBackend {
                 ]
                 .concat(),
             )?;
-            for (first, count, wg) in chunks(n, *max_groups) {
-                let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
-                r.dispatch(pipeline, &set, &p[..16], wg);
-            }
+            dispatch_items(r, pipeline, &set, n, *max_groups, range_push);
             Ok(())
         })?;
         let mut bytes = vec![0u8; out.len() * 4];
@@ -680,105 +677,130 @@ impl VulkanBackend {
     }
 }
 
-/// Records `adam_cs` for every group.
-fn record_adam<'a>(
-    r: &mut crate::raw::Recorder<'a>,
+/// Dispatches `pipeline` over `n` items, one per invocation, in chunks within the
+/// workgroup-count limit; `push(first, count)` gives a chunk's push constants (the first
+/// `pipeline.push_size()` bytes are used).
+fn dispatch_items<'a>(
+    r: &mut Recorder<'a>,
     pipeline: &'a Pipeline,
+    set: &Set<'a>,
+    n: usize,
+    max_groups: u32,
+    push: impl Fn(u32, u32) -> [u8; 32],
+) {
+    for (first, count, wg) in chunks(n, max_groups) {
+        let p = push(first, count);
+        r.dispatch(pipeline, set, &p[..pipeline.push_size()], wg);
+    }
+}
+
+/// Push constants of the entry points that take only the item range.
+fn range_push(first: u32, count: u32) -> [u8; 32] {
+    push_bytes([count, first, 0, 0, 0, 0, 0, 0])
+}
+
+/// What the passes of one submission share: pipelines, model buffers, and the batch's rays
+/// and sample records.
+struct Passes<'a> {
+    pipelines: &'a Pipelines,
     groups: &'a [GroupBuffers; NUM_GROUPS],
-    steps: &[AdamStep; NUM_GROUPS],
-    max_groups: u32,
-) -> Result<(), VulkanError> {
-    for (g, s) in groups.iter().zip(steps.iter()) {
-        for part in &g.parts {
-            record_adam_part(r, pipeline, part, s, max_groups)?;
-        }
-    }
-    Ok(())
-}
-
-fn record_adam_part<'a>(
-    r: &mut crate::raw::Recorder<'a>,
-    pipeline: &'a Pipeline,
-    g: &'a Part,
-    s: &AdamStep,
-    max_groups: u32,
-) -> Result<(), VulkanError> {
-    {
-        let set = r.bind(pipeline, &[&g.params, &g.m, &g.v, &g.grad])?;
-        for (first, count, wg) in chunks(g.len, max_groups) {
-            let p = push_bytes([
-                count,
-                first,
-                s.lr.to_bits(),
-                s.beta1.to_bits(),
-                s.beta2.to_bits(),
-                s.eps.to_bits(),
-                s.bias_correction1.to_bits(),
-                s.bias_correction2.to_bits(),
-            ]);
-            r.dispatch(pipeline, &set, &p, wg);
-        }
-    }
-    Ok(())
-}
-
-/// Records pass 1 (`sample_forward_cs`) over `records` sample records of the rays in `rays`.
-#[allow(clippy::too_many_arguments)]
-fn record_sample_forward<'a>(
-    r: &mut crate::raw::Recorder<'a>,
-    pipeline: &'a Pipeline,
     model_words: &'a Buffer,
-    groups: &'a [GroupBuffers; NUM_GROUPS],
     rays: &'a Buffer,
     samples: &'a Buffer,
+    /// Sample records of the batch (rays x samples per ray).
     records: usize,
-    seed: u32,
-    jitter: bool,
     max_groups: u32,
-) -> Result<(), VulkanError> {
-    let set = r.bind(
-        pipeline,
-        &[
-            &[model_words][..],
-            &param_bindings(groups),
-            &[rays, samples],
-        ]
-        .concat(),
-    )?;
-    for (first, count, wg) in chunks(records, max_groups) {
-        let p = push_bytes([count, first, seed, jitter as u32, 0, 0, 0, 0]);
-        r.dispatch(pipeline, &set, &p[..16], wg);
-    }
-    Ok(())
 }
 
-/// Records pass 3 (`sample_backward_cs`) over `records` sample records.
-#[allow(clippy::too_many_arguments)]
-fn record_sample_backward<'a>(
-    r: &mut crate::raw::Recorder<'a>,
-    pipeline: &'a Pipeline,
-    model_words: &'a Buffer,
-    groups: &'a [GroupBuffers; NUM_GROUPS],
-    rays: &'a Buffer,
-    samples: &'a Buffer,
-    records: usize,
-    max_groups: u32,
-) -> Result<(), VulkanError> {
-    let set = r.bind(
-        pipeline,
-        &[
-            &[model_words][..],
-            &param_bindings(groups),
-            &grad_bindings(groups),
-            &[rays, samples],
-        ]
-        .concat(),
-    )?;
-    for (first, count, wg) in chunks(records, max_groups) {
-        let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
-        r.dispatch(pipeline, &set, &p[..16], wg);
+impl<'a> Passes<'a> {
+    /// Zeroes every gradient buffer.
+    fn zero_grads(&self, r: &mut Recorder<'a>) {
+        for p in self.groups.iter().flat_map(|g| g.parts.iter()) {
+            r.zero(&p.grad);
+        }
+        r.barrier();
     }
-    Ok(())
+
+    /// Pass 1: `sample_forward_cs` over every sample record.
+    fn sample_forward(
+        &self,
+        r: &mut Recorder<'a>,
+        seed: u32,
+        jitter: bool,
+    ) -> Result<(), VulkanError> {
+        let pipeline = &self.pipelines.sample_forward;
+        let set = r.bind(
+            pipeline,
+            &[
+                &[self.model_words][..],
+                &param_bindings(self.groups),
+                &[self.rays, self.samples],
+            ]
+            .concat(),
+        )?;
+        dispatch_items(
+            r,
+            pipeline,
+            &set,
+            self.records,
+            self.max_groups,
+            |first, count| push_bytes([count, first, seed, jitter as u32, 0, 0, 0, 0]),
+        );
+        r.barrier();
+        Ok(())
+    }
+
+    /// Pass 3: `sample_backward_cs` over every sample record.
+    fn sample_backward(&self, r: &mut Recorder<'a>) -> Result<(), VulkanError> {
+        let pipeline = &self.pipelines.sample_backward;
+        let set = r.bind(
+            pipeline,
+            &[
+                &[self.model_words][..],
+                &param_bindings(self.groups),
+                &grad_bindings(self.groups),
+                &[self.rays, self.samples],
+            ]
+            .concat(),
+        )?;
+        dispatch_items(r, pipeline, &set, self.records, self.max_groups, range_push);
+        r.barrier();
+        Ok(())
+    }
+
+    /// `adam_cs` over every part of every group.
+    fn adam(
+        &self,
+        r: &mut Recorder<'a>,
+        steps: &[AdamStep; NUM_GROUPS],
+    ) -> Result<(), VulkanError> {
+        let pipeline = &self.pipelines.adam;
+        for (g, s) in self.groups.iter().zip(steps.iter()) {
+            for part in &g.parts {
+                let set = r.bind(pipeline, &[&part.params, &part.m, &part.v, &part.grad])?;
+                dispatch_items(
+                    r,
+                    pipeline,
+                    &set,
+                    part.len,
+                    self.max_groups,
+                    |first, count| {
+                        push_bytes([
+                            count,
+                            first,
+                            s.lr.to_bits(),
+                            s.beta1.to_bits(),
+                            s.beta2.to_bits(),
+                            s.eps.to_bits(),
+                            s.bias_correction1.to_bits(),
+                            s.bias_correction2.to_bits(),
+                        ])
+                    },
+                );
+            }
+        }
+        Ok(())
+    }
 }
 
 impl Backend for VulkanBackend {
@@ -830,28 +852,22 @@ impl Backend for VulkanBackend {
         else {
             return Err(VulkanError::Unsupported("buffer allocation"));
         };
-        let max_groups = *max_groups;
+        let passes = Passes {
+            pipelines,
+            groups,
+            model_words,
+            rays: input,
+            samples,
+            records,
+            max_groups: *max_groups,
+        };
         gpu.submit(|r| {
-            for p in groups.iter().flat_map(|g| g.parts.iter()) {
-                r.zero(&p.grad);
-            }
-            r.barrier();
+            passes.zero_grads(r);
             if n > 0 {
-                record_sample_forward(
-                    r,
-                    &pipelines.sample_forward,
-                    model_words,
-                    groups,
-                    input,
-                    samples,
-                    records,
-                    loss.seed,
-                    true,
-                    max_groups,
-                )?;
-                r.barrier();
+                passes.sample_forward(r, loss.seed, true)?;
+                let pipeline = &pipelines.ray_train;
                 let set = r.bind(
-                    &pipelines.ray_train,
+                    pipeline,
                     &[
                         model_words,
                         &groups[4].lo().params,
@@ -861,23 +877,11 @@ impl Backend for VulkanBackend {
                         output,
                     ],
                 )?;
-                for (first, count, wg) in chunks(n, max_groups) {
-                    r.dispatch(&pipelines.ray_train, &set, &train_push(first, count), wg);
-                }
+                dispatch_items(r, pipeline, &set, n, passes.max_groups, train_push);
                 r.barrier();
-                record_sample_backward(
-                    r,
-                    &pipelines.sample_backward,
-                    model_words,
-                    groups,
-                    input,
-                    samples,
-                    records,
-                    max_groups,
-                )?;
-                r.barrier();
+                passes.sample_backward(r)?;
             }
-            record_adam(r, &pipelines.adam, groups, &steps, max_groups)
+            passes.adam(r, &steps)
         })?;
         self.read_results(results);
         Ok(summarize(results, self.t))
@@ -906,29 +910,23 @@ impl Backend for VulkanBackend {
         else {
             return Err(VulkanError::Unsupported("buffer allocation"));
         };
-        let max_groups = *max_groups;
+        let passes = Passes {
+            pipelines,
+            groups,
+            model_words,
+            rays: input,
+            samples,
+            records,
+            max_groups: *max_groups,
+        };
         gpu.submit(|r| {
-            record_sample_forward(
-                r,
-                &pipelines.sample_forward,
-                model_words,
-                groups,
-                input,
-                samples,
-                records,
-                0,
-                false,
-                max_groups,
-            )?;
-            r.barrier();
+            passes.sample_forward(r, 0, false)?;
+            let pipeline = &pipelines.ray_render;
             let set = r.bind(
-                &pipelines.ray_render,
+                pipeline,
                 &[model_words, &groups[4].lo().params, input, samples, output],
             )?;
-            for (first, count, wg) in chunks(n, max_groups) {
-                let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
-                r.dispatch(&pipelines.ray_render, &set, &p[..16], wg);
-            }
+            dispatch_items(r, pipeline, &set, n, passes.max_groups, range_push);
             Ok(())
         })?;
         self.read_results(results);
@@ -1091,34 +1089,26 @@ impl Backend for VulkanBackend {
             return Err(VulkanError::Unsupported("buffer allocation"));
         };
         let images: &Buffer = images;
-        let max_groups = *max_groups;
+        let passes = Passes {
+            pipelines,
+            groups,
+            model_words,
+            rays: input,
+            samples,
+            records,
+            max_groups: *max_groups,
+        };
         gpu.submit(|r| {
-            for p in groups.iter().flat_map(|g| g.parts.iter()) {
-                r.zero(&p.grad);
-            }
-            r.barrier();
+            passes.zero_grads(r);
             if n > 0 {
-                let set = r.bind(&pipelines.pixel_rays, &[window, pixels, images, input])?;
-                for (first, count, wg) in chunks(n, max_groups) {
-                    let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
-                    r.dispatch(&pipelines.pixel_rays, &set, &p[..16], wg);
-                }
+                let pipeline = &pipelines.pixel_rays;
+                let set = r.bind(pipeline, &[window, pixels, images, input])?;
+                dispatch_items(r, pipeline, &set, n, passes.max_groups, range_push);
                 r.barrier();
-                record_sample_forward(
-                    r,
-                    &pipelines.sample_forward,
-                    model_words,
-                    groups,
-                    input,
-                    samples,
-                    records,
-                    seed,
-                    true,
-                    max_groups,
-                )?;
-                r.barrier();
+                passes.sample_forward(r, seed, true)?;
+                let pipeline = &pipelines.pixel_train;
                 let set = r.bind(
-                    &pipelines.pixel_train,
+                    pipeline,
                     &[
                         model_words,
                         &groups[4].lo().params,
@@ -1131,24 +1121,11 @@ impl Backend for VulkanBackend {
                         output,
                     ],
                 )?;
-                for (first, count, wg) in chunks(n, max_groups) {
-                    let p = push_bytes([count, first, 0, 0, 0, 0, 0, 0]);
-                    r.dispatch(&pipelines.pixel_train, &set, &p[..16], wg);
-                }
+                dispatch_items(r, pipeline, &set, n, passes.max_groups, range_push);
                 r.barrier();
-                record_sample_backward(
-                    r,
-                    &pipelines.sample_backward,
-                    model_words,
-                    groups,
-                    input,
-                    samples,
-                    records,
-                    max_groups,
-                )?;
-                r.barrier();
+                passes.sample_backward(r)?;
             }
-            record_adam(r, &pipelines.adam, groups, &steps, max_groups)
+            passes.adam(r, &steps)
         })?;
         let f = self.read_floats(n * PIXEL_RESULT_FLOATS);
         for (r, v) in results

@@ -504,6 +504,11 @@ pub(crate) struct Pipeline {
 }
 
 impl Pipeline {
+    /// Bytes of push constants the pipeline takes.
+    pub fn push_size(&self) -> usize {
+        self.push_size as usize
+    }
+
     pub fn new(
         device: &Arc<Device>,
         module: &ShaderModule,
