@@ -270,6 +270,18 @@ fn grid_section(g: &GridConfig) -> GridSection {
     }
 }
 
+/// Lays `top` over `base`: tables merge recursively, everything else replaces.
+fn merge_tables(base: &mut toml::Table, top: toml::Table) {
+    for (k, v) in top {
+        match (base.get_mut(&k), v) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(t)) => merge_tables(b, t),
+            (_, v) => {
+                base.insert(k, v);
+            }
+        }
+    }
+}
+
 impl Config {
     /// The paper's values (48 samples per ray and 4096 pixels per iteration are ours: the
     /// paper does not give them).
@@ -416,13 +428,33 @@ impl Config {
 
     /// Reads a TOML file (missing fields take the `small` preset's values).
     pub fn from_file(path: &Path) -> anyhow::Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("reading configuration {}", path.display()))?;
-        Self::from_toml(&text).with_context(|| format!("in configuration {}", path.display()))
+        Self::from_file_over(path, &Self::small())
     }
 
+    /// Reads a TOML file laid over `base`: every field the file leaves out, at any depth
+    /// (e.g. `[model.geometry]` giving only `cell_sizes`), keeps `base`'s value.
+    pub fn from_file_over(path: &Path, base: &Config) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading configuration {}", path.display()))?;
+        Self::from_toml_over(&text, base)
+            .with_context(|| format!("in configuration {}", path.display()))
+    }
+
+    /// Parses TOML laid over the `small` preset.
     pub fn from_toml(text: &str) -> anyhow::Result<Self> {
-        let c: Config = toml::from_str(text).context("parsing TOML")?;
+        Self::from_toml_over(text, &Self::small())
+    }
+
+    /// Parses TOML laid over `base` (tables merge key by key, arrays and values replace);
+    /// unknown keys are errors.
+    pub fn from_toml_over(text: &str, base: &Config) -> anyhow::Result<Self> {
+        let user: toml::Table = toml::from_str(text).context("parsing TOML")?;
+        let mut merged: toml::Table =
+            toml::from_str(&base.to_toml()).expect("a configuration parses back");
+        merge_tables(&mut merged, user);
+        let c: Config = toml::Value::Table(merged)
+            .try_into()
+            .context("parsing TOML")?;
         c.validate()?;
         Ok(c)
     }
@@ -669,6 +701,27 @@ mod tests {
         assert_eq!(p.geometry_grid, GridConfig::hi_map_geometry());
         assert_eq!(p.samples, 48);
         assert_eq!(Config::paper().mapper.init_iters, 1500);
+    }
+
+    #[test]
+    fn files_lay_over_the_chosen_preset_at_any_depth() {
+        let text = "[model.geometry]\ncell_sizes = [0.5, 0.25]\n[mapper.warp]\nhalf = 3\n";
+        let c = Config::from_toml_over(text, &Config::paper()).unwrap();
+        assert_eq!(c.model.geometry.cell_sizes, vec![0.5, 0.25]);
+        assert_eq!(
+            c.model.geometry.channels,
+            Config::paper().model.geometry.channels
+        );
+        assert_eq!(c.mapper.warp.half, 3);
+        assert_eq!(
+            c.mapper.warp.min_views,
+            Config::paper().mapper.warp.min_views
+        );
+        assert_eq!(c.mapper.init_iters, Config::paper().mapper.init_iters);
+        let s = Config::from_toml(text).unwrap();
+        assert_eq!(s.mapper.init_iters, Config::small().mapper.init_iters);
+        let e = Config::from_toml_over("[model.geometry]\ncels = 1\n", &Config::paper());
+        assert!(format!("{:#}", e.unwrap_err()).contains("cels"));
     }
 
     #[test]

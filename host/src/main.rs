@@ -254,9 +254,10 @@ fn main() -> anyhow::Result<()> {
             threads,
             print_config,
         } => {
+            let base = himap::config::Config::preset(&preset)?;
             let cfg = match &config {
-                Some(p) => himap::config::Config::from_file(p)?,
-                None => himap::config::Config::preset(&preset)?,
+                Some(p) => himap::config::Config::from_file_over(p, &base)?,
+                None => base,
             };
             if print_config {
                 print!("{}", cfg.to_toml());
