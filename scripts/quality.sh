@@ -4,14 +4,14 @@
 # one ablation table; every run's outputs (metrics.csv, summary.json, mesh.ply, renders/) stay
 # in $OUT.
 #
-# Time on the 2-core development VM (release build), estimated from the CPU time of single-
-# thread runs (about 150-250 s each; the script was not timed end to end on an idle machine);
-# with THREADS=2 roughly half, with the other core busy roughly the single-thread time:
-#   demo room (60 frames 128x96)                        about 2-4 min
-#   ICL living room 1 (frames 0..30, 320x240)           about 2-4 min
-#   7-Scenes redkitchen (frames 0..30, 320x240)         about 2-4 min
-#   ablations on ICL: 5 more runs                       about 10-20 min
-#   total                                               about 16-32 min
+# Time on the 2-core development VM (release build, THREADS=2, measured 2026-11-23 with the
+# 48-sample, 64..4 cm `small` preset):
+#   demo room (60 frames 128x96)                        about 4 min
+#   ICL living room 1 (frames 0..30, 320x240)           about 4-5 min
+#   7-Scenes redkitchen (frames 0..30, 320x240)         about 4-5 min
+#   ablations on ICL: 5 more runs                       about 20-25 min
+#   total                                               about 35 min
+# Per-region mesh metrics of the demo room: scripts/demo_regions.py (numpy, scipy).
 #
 # Usage: scripts/quality.sh [--no-ablation] [--only demo|icl|7scenes] [--table-only]
 #   --table-only prints the tables from the summaries already in $OUT without running.
@@ -83,7 +83,7 @@ row() {
     jq -r --arg n "$name" '
         def f(x; p): if x == null then "-" else (x * p | round / p | tostring) end;
         [$n, f(.mean_psnr; 100), f(.mean_ssim; 1000), f(.mean_depth_l1_cm; 10),
-         f(.mesh.accuracy_cm; 10), f(.mesh.completion_cm; 10), f(.mesh.completion_ratio_pct; 10),
+         f(.mesh.accuracy_cm; 100), f(.mesh.completion_cm; 100), f(.mesh.completion_ratio_pct; 10),
          (.mesh_faces | tostring), f(.seconds_per_iteration * 1000; 1), f(.seconds_total; 1)]
         | @tsv' "$s" | awk -F'\t' '{printf "%-22s %7s %6s %8s %7s %7s %7s %8s %8s %7s\n", $1,$2,$3,$4,$5,$6,$7,$8,$9,$10}'
 }
