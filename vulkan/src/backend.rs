@@ -803,6 +803,33 @@ impl<'a> Passes<'a> {
     }
 }
 
+impl VulkanBackend {
+    /// Splits `self` for recording a ray batch (train or render): the device, the passes
+    /// over the staged rays and sample records, and the results buffer.
+    fn ray_passes(
+        &mut self,
+        records: usize,
+    ) -> Result<(&mut Gpu, Passes<'_>, &Buffer), VulkanError> {
+        let (Some(input), Some(output), Some(samples)) = (
+            self.input.as_ref(),
+            self.output.as_ref(),
+            self.samples.as_ref(),
+        ) else {
+            return Err(VulkanError::Unsupported("buffer allocation"));
+        };
+        let passes = Passes {
+            pipelines: &self.pipelines,
+            groups: &self.groups,
+            model_words: &self.model_words,
+            rays: input,
+            samples,
+            records,
+            max_groups: self.max_groups,
+        };
+        Ok((&mut self.gpu, passes, output))
+    }
+}
+
 impl Backend for VulkanBackend {
     type Error = VulkanError;
 
@@ -836,31 +863,14 @@ impl Backend for VulkanBackend {
                 0,
             ])
         };
-        let Self {
-            gpu,
-            groups,
-            model_words,
-            input,
-            output,
-            samples,
-            pipelines,
-            max_groups,
-            ..
-        } = self;
-        let (Some(input), Some(output), Some(samples)) =
-            (input.as_ref(), output.as_ref(), samples.as_ref())
-        else {
-            return Err(VulkanError::Unsupported("buffer allocation"));
-        };
-        let passes = Passes {
-            pipelines,
-            groups,
-            model_words,
-            rays: input,
-            samples,
-            records,
-            max_groups: *max_groups,
-        };
+        let (gpu, passes, output) = self.ray_passes(records)?;
+        let (pipelines, groups, model_words, input, samples) = (
+            passes.pipelines,
+            passes.groups,
+            passes.model_words,
+            passes.rays,
+            passes.samples,
+        );
         gpu.submit(|r| {
             passes.zero_grads(r);
             if n > 0 {
@@ -894,31 +904,14 @@ impl Backend for VulkanBackend {
         }
         let records = self.stage_rays(rays)?;
         let n = rays.len();
-        let Self {
-            gpu,
-            groups,
-            model_words,
-            input,
-            output,
-            samples,
-            pipelines,
-            max_groups,
-            ..
-        } = self;
-        let (Some(input), Some(output), Some(samples)) =
-            (input.as_ref(), output.as_ref(), samples.as_ref())
-        else {
-            return Err(VulkanError::Unsupported("buffer allocation"));
-        };
-        let passes = Passes {
-            pipelines,
-            groups,
-            model_words,
-            rays: input,
-            samples,
-            records,
-            max_groups: *max_groups,
-        };
+        let (gpu, passes, output) = self.ray_passes(records)?;
+        let (pipelines, groups, model_words, input, samples) = (
+            passes.pipelines,
+            passes.groups,
+            passes.model_words,
+            passes.rays,
+            passes.samples,
+        );
         gpu.submit(|r| {
             passes.sample_forward(r, 0, false)?;
             let pipeline = &pipelines.ray_render;
