@@ -699,6 +699,149 @@ pub fn grid_backward<P: ParamRead + ?Sized, S: GradSink>(
     d_p
 }
 
+/// The 18 corner rows (`nc` channels each) a factorized level reads at one cell, or `None` when
+/// a row would leave `params` (only a corrupted layout).
+#[inline(always)]
+fn vm_rows<'p>(params: &'p [f32], k: &VmCorners, nc: usize) -> Option<[&'p [f32]; 18]> {
+    let r = |i: usize| params.get(i..i + nc);
+    Some([
+        r(k.xy[0])?,
+        r(k.xy[1])?,
+        r(k.xy[2])?,
+        r(k.xy[3])?,
+        r(k.xz[0])?,
+        r(k.xz[1])?,
+        r(k.xz[2])?,
+        r(k.xz[3])?,
+        r(k.yz[0])?,
+        r(k.yz[1])?,
+        r(k.yz[2])?,
+        r(k.yz[3])?,
+        r(k.x[0])?,
+        r(k.x[1])?,
+        r(k.y[0])?,
+        r(k.y[1])?,
+        r(k.z[0])?,
+        r(k.z[1])?,
+    ])
+}
+
+/// Lines `[vx, vy, vz]` and planes `[mxy, mxz, myz]` of channel `c` from [`vm_rows`], the
+/// operations of [`vm_interp`].
+#[inline(always)]
+fn vm_interp_rows(r: &[&[f32]; 18], c: usize, f: [f32; 3]) -> ([f32; 3], [f32; 3]) {
+    let v = VmValues {
+        xy: [r[0][c], r[1][c], r[2][c], r[3][c]],
+        xz: [r[4][c], r[5][c], r[6][c], r[7][c]],
+        yz: [r[8][c], r[9][c], r[10][c], r[11][c]],
+        x: [r[12][c], r[13][c]],
+        y: [r[14][c], r[15][c]],
+        z: [r[16][c], r[17][c]],
+    };
+    vm_interp(&v, f)
+}
+
+/// [`grid_forward`] over a parameter slice with a level's channels side by side (what a CPU
+/// runs in SIMD lanes): every feature is the same sequence of operations, so the same bits
+/// (tested). Dense grids and corrupted layouts take [`grid_forward`]. Host-side; the GPU runs
+/// [`grid_forward`].
+pub fn grid_forward_rows(
+    layout: &GridLayout,
+    params: &[f32],
+    p: [f32; 3],
+    out: &mut [f32; MAX_GRID_FEATURES],
+) {
+    let (nl, nc) = kernel_dims(layout);
+    if layout.kind == GridKind::Dense {
+        return grid_forward(layout, params, p, out);
+    }
+    let (xn, _) = normalize_with_mask(&layout.aabb, p);
+    *out = [0.0; MAX_GRID_FEATURES];
+    let mut l = 0;
+    while l < nl {
+        let lv = &layout.level[l];
+        let cell = locate(xn, lv.res);
+        let Some(r) = vm_rows(params, &vm_corners(lv, nc, &cell), nc) else {
+            return grid_forward(layout, params, p, out);
+        };
+        for (c, o) in out[l * nc..(l + 1) * nc].iter_mut().enumerate() {
+            let (line, plane) = vm_interp_rows(&r, c, cell.f);
+            *o = line[0] * plane[2] + line[1] * plane[1] + line[2] * plane[0];
+        }
+        l += 1;
+    }
+}
+
+/// The parameter contributions of [`grid_backward`] (not dL/dp), row by row: for each of a
+/// level's 18 corners one [`GradSink::add_scaled`] over the channels, each contribution the
+/// same product as in [`grid_backward`] (a product of two factors either way round is the same
+/// f32), so the integer sums are the same (tested). Dense grids and corrupted layouts take
+/// [`grid_backward`]. Host-side; the GPU runs [`grid_backward`].
+pub fn grid_backward_rows<S: GradSink>(
+    layout: &GridLayout,
+    params: &[f32],
+    p: [f32; 3],
+    d_feat: &[f32; MAX_GRID_FEATURES],
+    sink: &mut S,
+) {
+    let (nl, nc) = kernel_dims(layout);
+    if layout.kind == GridKind::Dense || nc > crate::mlp::MAX_WIDTH {
+        grid_backward(layout, params, p, d_feat, sink);
+        return;
+    }
+    let (xn, _) = normalize_with_mask(&layout.aabb, p);
+    let mut l = 0;
+    while l < nl {
+        let lv = &layout.level[l];
+        let cell = locate(xn, lv.res);
+        let k = vm_corners(lv, nc, &cell);
+        let Some(r) = vm_rows(params, &k, nc) else {
+            grid_backward(layout, params, p, d_feat, sink);
+            return;
+        };
+        // Per channel: g * (the other factor) of every term: lines x, y, z; planes xy, xz, yz.
+        let mut gl = [[0.0f32; crate::mlp::MAX_WIDTH]; 6];
+        let d = &d_feat[l * nc..(l + 1) * nc];
+        for (c, &g) in d.iter().enumerate() {
+            let ([vx, vy, vz], [mxy, mxz, myz]) = vm_interp_rows(&r, c, cell.f);
+            gl[0][c] = g * myz;
+            gl[1][c] = g * mxz;
+            gl[2][c] = g * mxy;
+            gl[3][c] = g * vz;
+            gl[4][c] = g * vy;
+            gl[5][c] = g * vx;
+        }
+        let [fx, fy, fz] = cell.f;
+        sink.add_scaled(k.x[0], 1.0 - fx, &gl[0], nc);
+        sink.add_scaled(k.x[1], fx, &gl[0], nc);
+        sink.add_scaled(k.y[0], 1.0 - fy, &gl[1], nc);
+        sink.add_scaled(k.y[1], fy, &gl[1], nc);
+        sink.add_scaled(k.z[0], 1.0 - fz, &gl[2], nc);
+        sink.add_scaled(k.z[1], fz, &gl[2], nc);
+        plane_rows_backward(sink, k.xy, &gl[3], nc, fx, fy);
+        plane_rows_backward(sink, k.xz, &gl[4], nc, fx, fz);
+        plane_rows_backward(sink, k.yz, &gl[5], nc, fy, fz);
+        l += 1;
+    }
+}
+
+/// [`plane_backward`] for all channels of a corner set at once.
+#[inline(always)]
+fn plane_rows_backward<S: GradSink>(
+    sink: &mut S,
+    p: [usize; 4],
+    gm: &[f32; crate::mlp::MAX_WIDTH],
+    nc: usize,
+    fa: f32,
+    fb: f32,
+) {
+    let (ua, ub) = (1.0 - fa, 1.0 - fb);
+    sink.add_scaled(p[0], ua * ub, gm, nc);
+    sink.add_scaled(p[1], fa * ub, gm, nc);
+    sink.add_scaled(p[2], ua * fb, gm, nc);
+    sink.add_scaled(p[3], fa * fb, gm, nc);
+}
+
 /// Adds the four bilinear-corner contributions of `gm` = dL/d(plane value) for channel `c`.
 #[inline(always)]
 fn plane_backward<S: GradSink>(sink: &mut S, p: [usize; 4], c: usize, gm: f32, fa: f32, fb: f32) {
@@ -1360,6 +1503,53 @@ mod tests {
         fn add(&mut self, i: usize, _g: f32) {
             self.calls += 1;
             self.max_index = self.max_index.max(i);
+        }
+    }
+
+    /// Records every contribution as (index, f32 bits), to compare multisets.
+    struct RecordSink {
+        adds: Vec<(usize, u32)>,
+    }
+    impl GradSink for RecordSink {
+        fn add(&mut self, i: usize, g: f32) {
+            self.adds.push((i, g.to_bits()));
+        }
+    }
+
+    /// The row forms give the per-channel kernels' bits: the features, and the same multiset
+    /// of (parameter, contribution) pairs, at random points (inside, on the border, outside)
+    /// for both box shapes and random parameters.
+    #[test]
+    fn row_kernels_equal_the_channel_kernels() {
+        let mut rng = crate::rng::SplitMix::new(21);
+        for (layout, seed) in [
+            (small(GridKind::Factorized), 1),
+            (one_level(GridKind::Factorized, 7), 2),
+        ] {
+            let params = random_params(&layout, seed);
+            for trial in 0..400 {
+                let p = [
+                    (rng.unit() * 3.0 - 0.5) * 2.0,
+                    (rng.unit() * 3.0 - 0.5),
+                    (rng.unit() * 3.0 - 0.5),
+                ];
+                let p = if trial == 0 { [2.0, 1.0, 1.0] } else { p };
+                let a = forward(&layout, &params, p);
+                let mut b = [1.0f32; MAX_GRID_FEATURES];
+                grid_forward_rows(&layout, &params, p, &mut b);
+                assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits), "{p:?}");
+                let mut d = [0.0f32; MAX_GRID_FEATURES];
+                for v in d.iter_mut().take(layout.feature_dim()) {
+                    *v = rng.unit() - 0.5;
+                }
+                let mut s1 = RecordSink { adds: Vec::new() };
+                let mut s2 = RecordSink { adds: Vec::new() };
+                grid_backward(&layout, &params[..], p, &d, &mut s1);
+                grid_backward_rows(&layout, &params, p, &d, &mut s2);
+                s1.adds.sort_unstable();
+                s2.adds.sort_unstable();
+                assert_eq!(s1.adds, s2.adds, "{p:?}");
+            }
         }
     }
 

@@ -84,9 +84,21 @@ impl Aabb {
 /// is split over several storage buffers implements it over the parts.
 pub trait ParamRead {
     fn at(&self, i: usize) -> f32;
+
+    /// The whole buffer as one slice, when it is one (host-side kernels that read rows of
+    /// channels use it; the GPU's split buffers are not, and never call it).
+    #[inline(always)]
+    fn as_slice(&self) -> Option<&[f32]> {
+        None
+    }
 }
 
 impl ParamRead for [f32] {
+    #[inline(always)]
+    fn as_slice(&self) -> Option<&[f32]> {
+        Some(self)
+    }
+
     #[inline(always)]
     fn at(&self, i: usize) -> f32 {
         self[i]
@@ -98,6 +110,18 @@ impl ParamRead for [f32] {
 /// to an `i64` buffer, so the sum is independent of order.
 pub trait GradSink {
     fn add(&mut self, i: usize, g: f32);
+
+    /// `add(offset + i, g * xs[i])` for every `i < n` (one contribution each; a decoder
+    /// layer's weight row). Backends whose buffer is one slice override it with a tight loop
+    /// over that slice; the contributions and hence the integer sums are the same.
+    #[inline(always)]
+    fn add_scaled(&mut self, offset: usize, g: f32, xs: &[f32; mlp::MAX_WIDTH], n: usize) {
+        let mut i = 0;
+        while i < n && i < mlp::MAX_WIDTH {
+            self.add(offset + i, g * xs[i]);
+            i += 1;
+        }
+    }
 }
 
 /// A sink that drops everything (forward-only uses of a backward, and tests).

@@ -9,8 +9,8 @@
 
 use crate::camera::{Intrinsics, Pose, PoseRead};
 use crate::model::{
-    ray_backward, ray_forward, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
-    SampleScratch,
+    ray_backward, ray_forward_taped, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
+    SampleScratch, SampleTape,
 };
 use crate::render::RayOutput;
 use crate::warp::{warp_pixel, FrameImages, WarpConfig, MAX_WINDOW};
@@ -229,6 +229,7 @@ pub fn pixel_train<
     I: FrameImages + ?Sized,
     PS: PoseRead + ?Sized,
     S: ModelGradSink,
+    T: SampleTape,
 >(
     layout: &ModelLayout,
     params: &Params<'_, P>,
@@ -238,14 +239,15 @@ pub fn pixel_train<
     loss: &MappingLoss,
     cache: &mut RayCache,
     scratch: &mut SampleScratch,
+    tape: &mut T,
     sink: &mut S,
 ) -> PixelResult {
     let (ray, ok) = pixel_ray(window, px);
     if !ok {
         return PixelResult::default();
     }
-    ray_forward(
-        layout, params, &ray, pixel_id, loss.seed, true, cache, scratch,
+    ray_forward_taped(
+        layout, params, &ray, pixel_id, loss.seed, true, cache, scratch, tape,
     );
     let (result, d_color, d_depth) = pixel_loss(window, px, &ray, &cache.out, cache.n, loss);
     ray_backward(
@@ -258,6 +260,7 @@ pub fn pixel_train<
         loss.color_to_geometry,
         cache,
         scratch,
+        tape,
         sink,
     );
     result

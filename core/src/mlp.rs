@@ -292,6 +292,85 @@ pub fn mlp_forward<P: ParamRead + ?Sized>(
     }
 }
 
+/// Writes the parameters of `params` with every layer's weight matrix transposed (`[in][out]`
+/// instead of `[out][in]`; biases unchanged, at the same offsets) into `out`, for
+/// [`mlp_forward_transposed`]. Errors: [`Error::Shape`] unless both hold `param_count` values.
+pub fn transpose_weights(layout: &MlpLayout, params: &[f32], out: &mut [f32]) -> Result<(), Error> {
+    let n = layout.param_count as usize;
+    crate::error::check_len("mlp params", params.len(), n)?;
+    crate::error::check_len("mlp transposed params", out.len(), n)?;
+    out.copy_from_slice(params);
+    let (n_in, hidden, layers, n_out) = clamped_dims(layout);
+    let mut k = 0usize;
+    while k <= layers {
+        let fan_in = if k == 0 { n_in } else { hidden };
+        let fan_out = if k == layers { n_out } else { hidden };
+        let w = layout.weight_offsets[k] as usize;
+        let mut j = 0;
+        while j < fan_out {
+            let mut i = 0;
+            while i < fan_in {
+                out[w + i * fan_out + j] = params[w + j * fan_in + i];
+                i += 1;
+            }
+            j += 1;
+        }
+        k += 1;
+    }
+    Ok(())
+}
+
+/// [`mlp_forward`] from weights laid out by [`transpose_weights`], computing all units of a
+/// layer together (input by input), which a CPU runs in SIMD lanes. Every unit still sums
+/// `bias + w_0 x_0 + w_1 x_1 + ...` in input order, the operations of [`mlp_forward`], so the
+/// outputs and activations are the same bits (tested). Host-side: the GPU runs
+/// [`mlp_forward`].
+pub fn mlp_forward_transposed(
+    layout: &MlpLayout,
+    wt: &[f32],
+    input: &[f32; MAX_WIDTH],
+    scratch: &mut MlpScratch,
+    out: &mut [f32; MAX_OUT],
+) {
+    let (n_in, hidden, layers, n_out) = clamped_dims(layout);
+    if wt.len() < layout.param_count as usize {
+        // A wrong buffer: fall back to the plain order rather than index out of bounds.
+        return mlp_forward(layout, wt, input, scratch, out);
+    }
+    scratch.act[0][..n_in].copy_from_slice(&input[..n_in]);
+    let mut k = 0usize;
+    while k <= layers {
+        let fan_in = if k == 0 { n_in } else { hidden };
+        let fan_out = if k == layers { n_out } else { hidden };
+        let w_off = layout.weight_offsets[k] as usize;
+        let b_off = layout.bias_offsets[k] as usize;
+        let mut acc = [0.0f32; MAX_WIDTH];
+        acc[..fan_out].copy_from_slice(&wt[b_off..b_off + fan_out]);
+        let x = &scratch.act[k];
+        for (i, &xi) in x[..fan_in].iter().enumerate() {
+            let col = &wt[w_off + i * fan_out..w_off + (i + 1) * fan_out];
+            for (a, &w) in acc[..fan_out].iter_mut().zip(col) {
+                *a += w * xi;
+            }
+        }
+        if k < layers {
+            for (dst, &v) in scratch.act[k + 1][..fan_out]
+                .iter_mut()
+                .zip(&acc[..fan_out])
+            {
+                *dst = relu(v);
+            }
+        } else {
+            let mut o = 0;
+            while o < MAX_OUT {
+                out[o] = if o < fan_out { acc[o] } else { 0.0 };
+                o += 1;
+            }
+        }
+        k += 1;
+    }
+}
+
 /// ReLU that maps negative numbers and both zeros to `+0.0` and propagates NaN (like
 /// `torch.relu`).
 #[inline(always)]
@@ -305,8 +384,9 @@ fn relu(x: f32) -> f32 {
 
 /// Backward pass. `scratch` must hold the activations of the [`mlp_forward`] call with the same
 /// `layout`, `params` and input. Given `d_out[0..n_out]` (the loss gradient with respect to the
-/// outputs), sends `dL/dparam` for every parameter to `sink` (exactly one `add` per parameter,
-/// with its index in the MLP's buffer) and writes `dL/dinput` to `d_input[0..n_in]`
+/// outputs), sends `dL/dparam` for every parameter to `sink` (one contribution per parameter,
+/// with its index in the MLP's buffer, through `add` and `add_scaled`; the rows of units whose
+/// gradient is exactly zero are skipped, their contributions being 0) and writes `dL/dinput` to `d_input[0..n_in]`
 /// (`d_input[n_in..]` is set to 0).
 pub fn mlp_backward<P: ParamRead + ?Sized, S: GradSink>(
     layout: &MlpLayout,
@@ -345,15 +425,20 @@ pub fn mlp_backward<P: ParamRead + ?Sized, S: GradSink>(
             j += 1;
         }
         // Parameter gradients and the gradient with respect to this layer's input.
+        // A zero `g` (an inactive ReLU) contributes exactly 0 to every parameter of its row
+        // (`to_fixed` of +-0 and of NaN is 0), so its sink calls are skipped; `d_prev` still
+        // takes every row, in row order.
         let mut d_prev = [0.0f32; MAX_WIDTH];
         let mut j = 0;
         while j < fan_out {
             let g = delta[j];
-            sink.add(b_off + j, g);
             let row = w_off + j * fan_in;
+            if g != 0.0 {
+                sink.add(b_off + j, g);
+                sink.add_scaled(row, g, &scratch.act[k], fan_in);
+            }
             let mut i = 0;
             while i < fan_in {
-                sink.add(row + i, g * scratch.act[k][i]);
                 d_prev[i] += params.at(row + i) * g;
                 i += 1;
             }
@@ -374,6 +459,43 @@ pub fn mlp_backward<P: ParamRead + ?Sized, S: GradSink>(
 mod tests {
     use super::*;
     use crate::{F32Sink, NullSink};
+
+    /// The transposed-weight forward gives the plain forward's bits: outputs and every
+    /// activation, for several shapes (incl. no hidden layer) and random weights and inputs.
+    #[test]
+    fn transposed_forward_is_bit_identical() {
+        let mut rng = crate::rng::SplitMix::new(11);
+        for &(n_in, hidden, layers, n_out) in &[
+            (12, 32, 2, 1),
+            (67, 32, 2, 3),
+            (35, 16, 2, 3),
+            (5, 0, 0, 2),
+            (9, 7, 3, 4),
+        ] {
+            let l = MlpLayout::new(n_in, hidden, layers, n_out).unwrap();
+            let n = l.param_count as usize;
+            for trial in 0..50 {
+                let params: std::vec::Vec<f32> = (0..n).map(|_| (rng.unit() - 0.5) * 0.7).collect();
+                let mut wt = std::vec![0.0f32; n];
+                transpose_weights(&l, &params, &mut wt).unwrap();
+                let mut x = [0.0f32; MAX_WIDTH];
+                for v in x.iter_mut().take(n_in as usize) {
+                    *v = (rng.unit() - 0.5) * 3.0;
+                }
+                let (mut s1, mut s2) = (MlpScratch::new(), MlpScratch::new());
+                let (mut o1, mut o2) = ([0.0f32; MAX_OUT], [1.0f32; MAX_OUT]);
+                mlp_forward(&l, &params[..], &x, &mut s1, &mut o1);
+                mlp_forward_transposed(&l, &wt, &x, &mut s2, &mut o2);
+                assert_eq!(o1.map(f32::to_bits), o2.map(f32::to_bits), "trial {trial}");
+                for k in 0..=layers as usize {
+                    let w = if k == 0 { n_in } else { hidden } as usize;
+                    for i in 0..w {
+                        assert_eq!(s1.act[k][i].to_bits(), s2.act[k][i].to_bits());
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn offsets_are_exact() {
@@ -568,7 +690,7 @@ mod tests {
     }
 
     #[test]
-    fn one_add_per_parameter() {
+    fn one_contribution_per_parameter_of_active_units() {
         for &(n_in, h, layers, n_out) in &[(12, 32, 2, 1), (67, 32, 2, 3), (5, 7, 0, 4)] {
             let l = MlpLayout::new(n_in, h, layers, n_out).unwrap();
             let mut p = vec![0.0f32; l.param_count as usize];
@@ -582,7 +704,24 @@ mod tests {
             };
             let mut dx = [0.0f32; MAX_WIDTH];
             mlp_backward(&l, &p[..], &s, &[1.0; MAX_OUT], &mut dx, &mut sink);
-            assert!(sink.counts.iter().all(|&c| c == 1));
+            // At most one contribution per parameter; a unit's row (weights and bias) gets one
+            // exactly when its gradient can be non-zero: output units always, hidden units
+            // when active (an inactive ReLU's row is skipped: all its contributions are 0).
+            assert!(sink.counts.iter().all(|&c| c <= 1));
+            for k in 0..=layers as usize {
+                let fan_in = l.fan_in(k as u32) as usize;
+                let fan_out = l.fan_out(k as u32) as usize;
+                for j in 0..fan_out {
+                    let want = (k == layers as usize || s.act[k + 1][j] > 0.0) as u32;
+                    let b = l.bias_offsets[k] as usize + j;
+                    assert_eq!(sink.counts[b], want, "layer {k} unit {j}");
+                    let w = l.weight_offsets[k] as usize + j * fan_in;
+                    assert!(sink.counts[w..w + fan_in].iter().all(|&c| c == want));
+                }
+            }
+            if layers > 0 {
+                assert!(sink.counts.contains(&1));
+            }
         }
     }
 

@@ -217,6 +217,17 @@ pub struct Params<'a, P: ParamRead + ?Sized> {
 /// Receives gradient contributions for all groups.
 pub trait ModelGradSink {
     fn add(&mut self, group: Group, i: usize, g: f32);
+
+    /// `add(group, offset + i, g * xs[i])` for every `i < n` (see
+    /// [`GradSink::add_scaled`]).
+    #[inline(always)]
+    fn add_scaled(&mut self, group: Group, offset: usize, g: f32, xs: &[f32; MAX_WIDTH], n: usize) {
+        let mut i = 0;
+        while i < n && i < MAX_WIDTH {
+            self.add(group, offset + i, g * xs[i]);
+            i += 1;
+        }
+    }
 }
 
 /// Adapts a [`ModelGradSink`] to one group's [`GradSink`].
@@ -229,6 +240,11 @@ impl<S: ModelGradSink> GradSink for GroupSink<'_, S> {
     #[inline(always)]
     fn add(&mut self, i: usize, g: f32) {
         self.inner.add(self.group, i, g);
+    }
+
+    #[inline(always)]
+    fn add_scaled(&mut self, offset: usize, g: f32, xs: &[f32; MAX_WIDTH], n: usize) {
+        self.inner.add_scaled(self.group, offset, g, xs, n);
     }
 }
 
@@ -300,25 +316,34 @@ impl Default for SampleScratch {
 }
 
 #[inline(always)]
-fn geometry_input(layout: &ModelLayout, s: &mut SampleScratch) {
+fn geometry_input(
+    layout: &ModelLayout,
+    feat: &[f32; MAX_GRID_FEATURES],
+    mlp_in: &mut [f32; MAX_WIDTH],
+) {
     let n = layout.geometry_grid.feature_dim();
     let mut i = 0;
     while i < MAX_WIDTH {
-        s.mlp_in[i] = if i < n { s.geo_feat[i] } else { 0.0 };
+        mlp_in[i] = if i < n { feat[i] } else { 0.0 };
         i += 1;
     }
 }
 
 #[inline(always)]
-fn appearance_input(layout: &ModelLayout, pn: [f32; 3], s: &mut SampleScratch) -> usize {
+fn appearance_input(
+    layout: &ModelLayout,
+    pn: [f32; 3],
+    feat: &[f32; MAX_GRID_FEATURES],
+    mlp_in: &mut [f32; MAX_WIDTH],
+) -> usize {
     let n = layout.appearance_grid.feature_dim();
     let off = if layout.config.dual_path { 3 } else { 0 };
     let mut i = 0;
     while i < MAX_WIDTH {
-        s.mlp_in[i] = if i < off {
+        mlp_in[i] = if i < off {
             pn[i]
         } else if i < off + n {
-            s.app_feat[i - off]
+            feat[i - off]
         } else {
             0.0
         };
@@ -334,21 +359,32 @@ pub fn sdf_at<P: ParamRead + ?Sized>(
     p: [f32; 3],
     s: &mut SampleScratch,
 ) -> f32 {
-    grid::grid_forward(
-        &layout.geometry_grid,
-        params.geometry_grid,
+    sdf_eval(
+        layout,
+        params,
         p,
         &mut s.geo_feat,
-    );
-    geometry_input(layout, s);
-    mlp::mlp_forward(
-        &layout.geometry_mlp,
-        params.geometry_mlp,
-        &s.mlp_in,
+        &mut s.mlp_in,
         &mut s.mlp,
         &mut s.mlp_out,
-    );
-    s.mlp_out[0]
+    )
+}
+
+/// [`sdf_at`] over the scratch's parts (the decoder's activations go to `mlp`).
+#[inline(always)]
+fn sdf_eval<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    p: [f32; 3],
+    feat: &mut [f32; MAX_GRID_FEATURES],
+    mlp_in: &mut [f32; MAX_WIDTH],
+    mlp: &mut MlpScratch,
+    out: &mut [f32; MAX_OUT],
+) -> f32 {
+    grid::grid_forward(&layout.geometry_grid, params.geometry_grid, p, feat);
+    geometry_input(layout, feat, mlp_in);
+    mlp::mlp_forward(&layout.geometry_mlp, params.geometry_mlp, mlp_in, mlp, out);
+    out[0]
 }
 
 /// Colour in [0, 1] at a world point.
@@ -358,25 +394,42 @@ pub fn color_at<P: ParamRead + ?Sized>(
     p: [f32; 3],
     s: &mut SampleScratch,
 ) -> [f32; 3] {
-    grid::grid_forward(
-        &layout.appearance_grid,
-        params.appearance_grid,
+    color_eval(
+        layout,
+        params,
         p,
         &mut s.app_feat,
-    );
+        &mut s.mlp_in,
+        &mut s.mlp,
+        &mut s.mlp_out,
+    )
+}
+
+/// [`color_at`] over the scratch's parts (the decoder's activations go to `mlp`).
+#[inline(always)]
+fn color_eval<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    p: [f32; 3],
+    feat: &mut [f32; MAX_GRID_FEATURES],
+    mlp_in: &mut [f32; MAX_WIDTH],
+    mlp: &mut MlpScratch,
+    out: &mut [f32; MAX_OUT],
+) -> [f32; 3] {
+    grid::grid_forward(&layout.appearance_grid, params.appearance_grid, p, feat);
     let pn = layout.config.aabb.normalize(p);
-    appearance_input(layout, pn, s);
+    appearance_input(layout, pn, feat, mlp_in);
     mlp::mlp_forward(
         &layout.appearance_mlp,
         params.appearance_mlp,
-        &s.mlp_in,
-        &mut s.mlp,
-        &mut s.mlp_out,
+        mlp_in,
+        mlp,
+        out,
     );
     [
-        math::sigmoid(s.mlp_out[0]),
-        math::sigmoid(s.mlp_out[1]),
-        math::sigmoid(s.mlp_out[2]),
+        math::sigmoid(out[0]),
+        math::sigmoid(out[1]),
+        math::sigmoid(out[2]),
     ]
 }
 
@@ -389,32 +442,22 @@ pub fn sdf_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
     s: &mut SampleScratch,
     sink: &mut S,
 ) {
-    // Recompute the forward activations (cheaper than storing them per sample).
+    // Recompute the forward activations (the GPU's per-sample pass stores nothing).
     sdf_at(layout, params, p, s);
-    let mut d_out = [0.0f32; MAX_OUT];
-    d_out[0] = d_sdf;
-    let mut d_in = [0.0f32; MAX_WIDTH];
-    {
-        let mut gs = GroupSink {
-            inner: sink,
-            group: Group::GeometryMlp,
-        };
-        mlp::mlp_backward(
-            &layout.geometry_mlp,
-            params.geometry_mlp,
-            &s.mlp,
-            &d_out,
-            &mut d_in,
-            &mut gs,
-        );
-    }
-    let n = layout.geometry_grid.feature_dim();
-    let mut d_feat = [0.0f32; MAX_GRID_FEATURES];
-    let mut i = 0;
-    while i < n {
-        d_feat[i] = d_in[i];
-        i += 1;
-    }
+    sdf_backward_taped(layout, params, p, d_sdf, &s.mlp, sink);
+}
+
+/// [`sdf_backward`] from the geometry decoder's activations `mlp` of the forward at `p` (kept
+/// by [`SampleTape`]): the same contributions without recomputing the forward.
+pub fn sdf_backward_taped<P: ParamRead + ?Sized, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    p: [f32; 3],
+    d_sdf: f32,
+    mlp: &MlpScratch,
+    sink: &mut S,
+) {
+    let d_feat = sdf_decoder_backward(layout, params, d_sdf, mlp, sink);
     let mut gs = GroupSink {
         inner: sink,
         group: Group::GeometryGrid,
@@ -428,6 +471,43 @@ pub fn sdf_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
     );
 }
 
+/// The geometry decoder's part of [`sdf_backward_taped`]: its parameter contributions, and
+/// dL/dfeatures for the grid.
+#[inline(always)]
+fn sdf_decoder_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    d_sdf: f32,
+    mlp: &MlpScratch,
+    sink: &mut S,
+) -> [f32; MAX_GRID_FEATURES] {
+    let mut d_out = [0.0f32; MAX_OUT];
+    d_out[0] = d_sdf;
+    let mut d_in = [0.0f32; MAX_WIDTH];
+    {
+        let mut gs = GroupSink {
+            inner: sink,
+            group: Group::GeometryMlp,
+        };
+        mlp::mlp_backward(
+            &layout.geometry_mlp,
+            params.geometry_mlp,
+            mlp,
+            &d_out,
+            &mut d_in,
+            &mut gs,
+        );
+    }
+    let n = layout.geometry_grid.feature_dim();
+    let mut d_feat = [0.0f32; MAX_GRID_FEATURES];
+    let mut i = 0;
+    while i < n {
+        d_feat[i] = d_in[i];
+        i += 1;
+    }
+    d_feat
+}
+
 /// Backward of [`color_at`]: contributions to the appearance grid and MLP.
 pub fn color_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
     layout: &ModelLayout,
@@ -438,6 +518,45 @@ pub fn color_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
     sink: &mut S,
 ) {
     let rgb = color_at(layout, params, p, s);
+    color_backward_taped(layout, params, p, d_rgb, rgb, &s.mlp, sink);
+}
+
+/// [`color_backward`] from the colour `rgb` and the appearance decoder's activations `mlp` of
+/// the forward at `p` (kept by [`SampleTape`]), without recomputing the forward.
+pub fn color_backward_taped<P: ParamRead + ?Sized, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    p: [f32; 3],
+    d_rgb: [f32; 3],
+    rgb: [f32; 3],
+    mlp: &MlpScratch,
+    sink: &mut S,
+) {
+    let d_feat = color_decoder_backward(layout, params, d_rgb, rgb, mlp, sink);
+    let mut gs = GroupSink {
+        inner: sink,
+        group: Group::AppearanceGrid,
+    };
+    grid::grid_backward(
+        &layout.appearance_grid,
+        params.appearance_grid,
+        p,
+        &d_feat,
+        &mut gs,
+    );
+}
+
+/// The appearance decoder's part of [`color_backward_taped`]: its parameter contributions,
+/// and dL/dfeatures for the grid.
+#[inline(always)]
+fn color_decoder_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    d_rgb: [f32; 3],
+    rgb: [f32; 3],
+    mlp: &MlpScratch,
+    sink: &mut S,
+) -> [f32; MAX_GRID_FEATURES] {
     let mut d_out = [0.0f32; MAX_OUT];
     let mut c = 0;
     while c < 3 {
@@ -453,7 +572,7 @@ pub fn color_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
         mlp::mlp_backward(
             &layout.appearance_mlp,
             params.appearance_mlp,
-            &s.mlp,
+            mlp,
             &d_out,
             &mut d_in,
             &mut gs,
@@ -467,17 +586,7 @@ pub fn color_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
         d_feat[i] = d_in[off + i];
         i += 1;
     }
-    let mut gs = GroupSink {
-        inner: sink,
-        group: Group::AppearanceGrid,
-    };
-    grid::grid_backward(
-        &layout.appearance_grid,
-        params.appearance_grid,
-        p,
-        &d_feat,
-        &mut gs,
-    );
+    d_feat
 }
 
 #[inline(always)]
@@ -591,11 +700,244 @@ pub fn ray_forward<P: ParamRead + ?Sized>(
     cache: &mut RayCache,
     s: &mut SampleScratch,
 ) {
+    ray_forward_taped(
+        layout,
+        params,
+        ray,
+        ray_id,
+        seed,
+        jitter,
+        cache,
+        s,
+        &mut Recompute,
+    );
+}
+
+/// How a ray's forward keeps what its backward needs: [`Recompute`] keeps nothing (the
+/// backward evaluates each sample again, as the GPU's per-sample pass does), [`StoredTape`]
+/// keeps both decoders' activations of every sample. Both give the same bits: the backward
+/// reads the activations of the same forward calls.
+pub trait SampleTape {
+    /// [`sample_forward`] of sample `i` at depth `t`.
+    fn forward<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        t: f32,
+        s: &mut SampleScratch,
+    ) -> (f32, [f32; 3]);
+
+    /// [`sample_backward`] of sample `i` (depth `t`, colour `rgb` from the forward).
+    #[allow(clippy::too_many_arguments)]
+    fn backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+        &self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        t: f32,
+        rgb: [f32; 3],
+        d_sdf: f32,
+        d_rgb: [f32; 3],
+        s: &mut SampleScratch,
+        sink: &mut S,
+    );
+}
+
+/// The tape that keeps nothing: the backward recomputes each sample's forward.
+pub struct Recompute;
+
+impl SampleTape for Recompute {
+    #[inline(always)]
+    fn forward<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        _i: usize,
+        t: f32,
+        s: &mut SampleScratch,
+    ) -> (f32, [f32; 3]) {
+        sample_forward(layout, params, ray, t, s)
+    }
+
+    #[inline(always)]
+    fn backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+        &self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        _i: usize,
+        t: f32,
+        _rgb: [f32; 3],
+        d_sdf: f32,
+        d_rgb: [f32; 3],
+        s: &mut SampleScratch,
+        sink: &mut S,
+    ) {
+        sample_backward(layout, params, ray, t, d_sdf, d_rgb, s, sink);
+    }
+}
+
+/// A tape over caller-owned storage: the geometry and appearance decoders' activations of
+/// every sample (`geometry[i]`, `appearance[i]`, at least as many as the ray has samples;
+/// samples past the end are recomputed). The forward runs the decoders with
+/// [`mlp::mlp_forward_transposed`] on `geometry_wt` / `appearance_wt`, the decoders' weights
+/// as [`mlp::transpose_weights`] lays them out (same bits as [`mlp::mlp_forward`]).
+pub struct StoredTape<'a> {
+    pub geometry: &'a mut [MlpScratch],
+    pub appearance: &'a mut [MlpScratch],
+    pub geometry_wt: &'a [f32],
+    pub appearance_wt: &'a [f32],
+}
+
+impl SampleTape for StoredTape<'_> {
+    #[inline(always)]
+    fn forward<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        t: f32,
+        s: &mut SampleScratch,
+    ) -> (f32, [f32; 3]) {
+        let (Some(g), Some(a)) = (self.geometry.get_mut(i), self.appearance.get_mut(i)) else {
+            return sample_forward(layout, params, ray, t, s);
+        };
+        let p = point_on_ray(ray, t);
+        grid_forward_any(
+            &layout.geometry_grid,
+            params.geometry_grid,
+            p,
+            &mut s.geo_feat,
+        );
+        geometry_input(layout, &s.geo_feat, &mut s.mlp_in);
+        let (gm, am) = (&layout.geometry_mlp, &layout.appearance_mlp);
+        mlp::mlp_forward_transposed(gm, self.geometry_wt, &s.mlp_in, g, &mut s.mlp_out);
+        let sdf = s.mlp_out[0];
+        grid_forward_any(
+            &layout.appearance_grid,
+            params.appearance_grid,
+            p,
+            &mut s.app_feat,
+        );
+        let pn = layout.config.aabb.normalize(p);
+        appearance_input(layout, pn, &s.app_feat, &mut s.mlp_in);
+        mlp::mlp_forward_transposed(am, self.appearance_wt, &s.mlp_in, a, &mut s.mlp_out);
+        let o = &s.mlp_out;
+        (
+            sdf,
+            [
+                math::sigmoid(o[0]),
+                math::sigmoid(o[1]),
+                math::sigmoid(o[2]),
+            ],
+        )
+    }
+
+    #[inline(always)]
+    fn backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+        &self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        t: f32,
+        rgb: [f32; 3],
+        d_sdf: f32,
+        d_rgb: [f32; 3],
+        s: &mut SampleScratch,
+        sink: &mut S,
+    ) {
+        let (Some(g), Some(a)) = (self.geometry.get(i), self.appearance.get(i)) else {
+            return sample_backward(layout, params, ray, t, d_sdf, d_rgb, s, sink);
+        };
+        let p = point_on_ray(ray, t);
+        if d_sdf != 0.0 {
+            let d_feat = sdf_decoder_backward(layout, params, d_sdf, g, sink);
+            let mut gs = GroupSink {
+                inner: &mut *sink,
+                group: Group::GeometryGrid,
+            };
+            grid_backward_any(
+                &layout.geometry_grid,
+                params.geometry_grid,
+                p,
+                &d_feat,
+                &mut gs,
+            );
+        }
+        if d_rgb[0] != 0.0 || d_rgb[1] != 0.0 || d_rgb[2] != 0.0 {
+            let d_feat = color_decoder_backward(layout, params, d_rgb, rgb, a, sink);
+            let mut gs = GroupSink {
+                inner: sink,
+                group: Group::AppearanceGrid,
+            };
+            grid_backward_any(
+                &layout.appearance_grid,
+                params.appearance_grid,
+                p,
+                &d_feat,
+                &mut gs,
+            );
+        }
+    }
+}
+
+/// [`grid::grid_forward_rows`] when the parameters are one slice, [`grid::grid_forward`]
+/// otherwise (same bits either way).
+#[inline(always)]
+fn grid_forward_any<P: ParamRead + ?Sized>(
+    layout: &GridLayout,
+    params: &P,
+    p: [f32; 3],
+    out: &mut [f32; MAX_GRID_FEATURES],
+) {
+    match params.as_slice() {
+        Some(sl) => grid::grid_forward_rows(layout, sl, p, out),
+        None => grid::grid_forward(layout, params, p, out),
+    }
+}
+
+/// [`grid::grid_backward_rows`] when the parameters are one slice, the parameter
+/// contributions of [`grid::grid_backward`] otherwise (the same either way).
+#[inline(always)]
+fn grid_backward_any<P: ParamRead + ?Sized, S: GradSink>(
+    layout: &GridLayout,
+    params: &P,
+    p: [f32; 3],
+    d_feat: &[f32; MAX_GRID_FEATURES],
+    sink: &mut S,
+) {
+    match params.as_slice() {
+        Some(sl) => grid::grid_backward_rows(layout, sl, p, d_feat, sink),
+        None => {
+            grid::grid_backward(layout, params, p, d_feat, sink);
+        }
+    }
+}
+
+/// [`ray_forward`] through a [`SampleTape`].
+#[allow(clippy::too_many_arguments)]
+pub fn ray_forward_taped<P: ParamRead + ?Sized, T: SampleTape>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    ray: &Ray,
+    ray_id: u32,
+    seed: u32,
+    jitter: bool,
+    cache: &mut RayCache,
+    s: &mut SampleScratch,
+    tape: &mut T,
+) {
     let n = ray_samples(layout, ray, ray_id, seed, jitter, &mut cache.t);
     cache.n = n;
     let mut i = 0;
     while i < n {
-        let (sdf, rgb) = sample_forward(layout, params, ray, cache.t[i], s);
+        let (sdf, rgb) = tape.forward(layout, params, ray, i, cache.t[i], s);
         cache.sdf[i] = sdf;
         cache.rgb[i] = rgb;
         i += 1;
@@ -634,7 +976,7 @@ pub struct RayResult {
 /// `ray_scale * (lambda_color * sum_c |C_c - target_c| + lambda_depth * |D - target_depth|)`
 /// (the depth term only when `target_depth > 0`). Gradients go to `sink`.
 #[allow(clippy::too_many_arguments)]
-pub fn ray_train<P: ParamRead + ?Sized, S: ModelGradSink>(
+pub fn ray_train<P: ParamRead + ?Sized, S: ModelGradSink, T: SampleTape>(
     layout: &ModelLayout,
     params: &Params<'_, P>,
     ray: &Ray,
@@ -642,9 +984,10 @@ pub fn ray_train<P: ParamRead + ?Sized, S: ModelGradSink>(
     loss: &LossConfig,
     cache: &mut RayCache,
     s: &mut SampleScratch,
+    tape: &mut T,
     sink: &mut S,
 ) -> RayResult {
-    ray_forward(layout, params, ray, ray_id, loss.seed, true, cache, s);
+    ray_forward_taped(layout, params, ray, ray_id, loss.seed, true, cache, s, tape);
     let (result, d_color, d_depth) = ray_loss(ray, &cache.out, loss);
     if cache.n == 0 {
         return result;
@@ -659,6 +1002,7 @@ pub fn ray_train<P: ParamRead + ?Sized, S: ModelGradSink>(
         loss.color_to_geometry,
         cache,
         s,
+        tape,
         sink,
     );
     result
@@ -753,7 +1097,7 @@ pub fn ray_composite_backward(
 
 /// Backward from the rendered colour, depth and opacity of a ray whose forward is in `cache`.
 #[allow(clippy::too_many_arguments)]
-pub fn ray_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+pub fn ray_backward<P: ParamRead + ?Sized, S: ModelGradSink, T: SampleTape>(
     layout: &ModelLayout,
     params: &Params<'_, P>,
     ray: &Ray,
@@ -763,6 +1107,7 @@ pub fn ray_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
     color_to_geometry: bool,
     cache: &RayCache,
     s: &mut SampleScratch,
+    tape: &T,
     sink: &mut S,
 ) {
     let n = cache.n;
@@ -786,7 +1131,18 @@ pub fn ray_backward<P: ParamRead + ?Sized, S: ModelGradSink>(
     );
     let mut i = 0;
     while i < n {
-        sample_backward(layout, params, ray, cache.t[i], d_sdf[i], d_rgb[i], s, sink);
+        tape.backward(
+            layout,
+            params,
+            ray,
+            i,
+            cache.t[i],
+            cache.rgb[i],
+            d_sdf[i],
+            d_rgb[i],
+            s,
+            sink,
+        );
         i += 1;
     }
     sink.add(Group::Beta, 0, d_beta);
@@ -897,10 +1253,23 @@ mod tests {
         };
         let mut cache = RayCache::new();
         let mut s = SampleScratch::new();
+        // The stored tape (what the CPU backends run); the recomputing one is checked against
+        // it bit for bit by the host's thread-invariance tests.
+        let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
+        let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
+        let mut wt: [Vec<f32>; 2] = [vec![0.0; p[2].len()], vec![0.0; p[3].len()]];
+        mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
+        mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
+        let mut tape = StoredTape {
+            geometry: &mut geometry,
+            appearance: &mut appearance,
+            geometry_wt: &wt[0],
+            appearance_wt: &wt[1],
+        };
         let mut total = 0.0f64;
         for (i, r) in rays.iter().enumerate() {
             total += ray_train(
-                layout, &params, r, i as u32, loss, &mut cache, &mut s, &mut sink,
+                layout, &params, r, i as u32, loss, &mut cache, &mut s, &mut tape, &mut sink,
             )
             .loss as f64;
         }

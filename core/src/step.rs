@@ -16,7 +16,7 @@ use crate::mapping::{
 };
 use crate::model::{
     ray_forward, ray_train, Group, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
-    RayResult, SampleScratch, NUM_GROUPS,
+    RayResult, Recompute, SampleScratch, NUM_GROUPS,
 };
 use crate::warp::MAX_WINDOW;
 use crate::Error;
@@ -287,6 +287,7 @@ impl<'a> CpuBackend<'a> {
                 &batch.loss,
                 &mut cache,
                 &mut scratch,
+                &mut Recompute,
                 &mut sink,
             );
         }
@@ -351,6 +352,7 @@ impl<'a> CpuBackend<'a> {
                 loss,
                 &mut cache,
                 &mut scratch,
+                &mut Recompute,
                 &mut sink,
             );
         }

@@ -1,19 +1,23 @@
 //! The host's multi-threaded CPU backend. Rays are split into chunks that run on a rayon pool;
-//! every gradient contribution is converted to fixed point on its own and added with integer
-//! atomics (grids) or into a per-chunk integer buffer flushed with integer atomics (the small
-//! decoder and beta groups, which every sample touches). Integer sums do not depend on order,
-//! so the parameters and gradients are bit-identical to the core's single-threaded
-//! [`himap_core::step::CpuBackend`] for any thread count.
+//! every gradient contribution is converted to fixed point on its own and added into the
+//! integer buffers of the thread that runs the chunk (no atomics, no shared cache lines);
+//! before Adam the per-thread buffers are summed. Integer sums do not depend on order, so the
+//! parameters and gradients are bit-identical to the core's single-threaded
+//! [`himap_core::step::CpuBackend`] for any thread count. A ray's forward keeps both decoders'
+//! activations of every sample ([`StoredTape`]) so the backward does not evaluate the field
+//! again.
 
-use std::sync::atomic::{AtomicI64, Ordering};
+use std::sync::{Mutex, MutexGuard};
 
-use himap_core::adam::{self, AdamConfig, AdamStep};
+use himap_core::adam::{AdamConfig, AdamStep};
 use himap_core::fixed;
 use himap_core::mapping::{pixel_train, PixelResult, WindowImages, WindowView};
+use himap_core::mlp::{MlpScratch, MAX_WIDTH};
 use himap_core::model::{
-    color_at, ray_forward, ray_train, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout,
-    Params, Ray, RayCache, RayResult, SampleScratch, NUM_GROUPS,
+    color_at, ray_forward_taped, ray_train, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout,
+    Params, Ray, RayCache, RayResult, SampleScratch, StoredTape, NUM_GROUPS,
 };
+use himap_core::render::MAX_SAMPLES;
 use himap_core::step::{
     summarize, summarize_pixels, window_slots, Backend, ImageStore, MapBatch, StepStats,
 };
@@ -21,6 +25,73 @@ use rayon::prelude::*;
 
 /// Rays per parallel work item.
 const CHUNK: usize = 32;
+
+/// Chunk `c` of [`CHUNK`] items of `items`.
+fn chunk_of<T>(items: &[T], c: usize) -> &[T] {
+    let a = (c * CHUNK).min(items.len());
+    &items[a..(a + CHUNK).min(items.len())]
+}
+
+/// An output slice cut into chunks of [`CHUNK`] that parallel work items fill by index.
+struct ChunkedOut<'a, T> {
+    chunks: Vec<Mutex<&'a mut [T]>>,
+}
+
+impl<'a, T> ChunkedOut<'a, T> {
+    fn new(out: &'a mut [T]) -> Self {
+        Self {
+            chunks: out.chunks_mut(CHUNK).map(Mutex::new).collect(),
+        }
+    }
+
+    fn chunks(&self) -> usize {
+        self.chunks.len()
+    }
+
+    fn chunk(&self, c: usize) -> MutexGuard<'_, &'a mut [T]> {
+        self.chunks[c].lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// [`himap_core::adam::adam_update`] with the step's constants hoisted and the CPU's square
+/// root instruction for `sqrt(v)`: the same operations in the same order, and IEEE square
+/// roots are correctly rounded like [`himap_core::math::sqrt`] (tested over 2^25 inputs), so the
+/// bits are the same.
+#[derive(Clone, Copy, Debug)]
+pub struct AdamHw {
+    beta1: f32,
+    one_minus_beta1: f32,
+    beta2: f32,
+    one_minus_beta2: f32,
+    sqrt_bc2: f32,
+    eps: f32,
+    step_size: f32,
+}
+
+impl AdamHw {
+    pub fn new(s: &AdamStep) -> Self {
+        Self {
+            beta1: s.beta1,
+            one_minus_beta1: 1.0 - s.beta1,
+            beta2: s.beta2,
+            one_minus_beta2: 1.0 - s.beta2,
+            sqrt_bc2: himap_core::math::sqrt(s.bias_correction2),
+            eps: s.eps,
+            step_size: s.lr / s.bias_correction1,
+        }
+    }
+
+    /// One parameter's update (see [`himap_core::adam::adam_update`]).
+    #[inline(always)]
+    pub fn update(&self, param: &mut f32, m: &mut f32, v: &mut f32, grad: f32) {
+        let m_new = self.beta1 * *m + self.one_minus_beta1 * grad;
+        let v_new = self.beta2 * *v + self.one_minus_beta2 * grad * grad;
+        let denom = v_new.sqrt() / self.sqrt_bc2 + self.eps;
+        *param -= self.step_size * m_new / denom;
+        *m = m_new;
+        *v = v_new;
+    }
+}
 
 /// Errors of the host CPU backend.
 #[derive(Debug, thiserror::Error)]
@@ -77,6 +148,22 @@ impl ModelData {
         }
     }
 
+    /// Both decoders' parameters with transposed weight matrices
+    /// ([`himap_core::mlp::transpose_weights`]), for the CPU's forward.
+    pub fn transposed_mlps(&self) -> [Vec<f32>; 2] {
+        let l = &self.layout;
+        let mut out = [
+            vec![0.0; self.params[2].len()],
+            vec![0.0; self.params[3].len()],
+        ];
+        // The lengths match the layout by construction (`new`, `write_params` check them).
+        himap_core::mlp::transpose_weights(&l.geometry_mlp, &self.params[2], &mut out[0])
+            .expect("geometry decoder parameters match the layout");
+        himap_core::mlp::transpose_weights(&l.appearance_mlp, &self.params[3], &mut out[1])
+            .expect("appearance decoder parameters match the layout");
+        out
+    }
+
     /// Bytes held by parameters and Adam moments.
     pub fn bytes(&self) -> usize {
         self.layout.param_count() * 3 * 4
@@ -86,7 +173,10 @@ impl ModelData {
 /// The multi-threaded CPU backend.
 pub struct ParallelCpuBackend {
     data: ModelData,
-    grads: [Vec<AtomicI64>; NUM_GROUPS],
+    /// One accumulator per pool thread (`rayon::current_thread_index`), reused across steps.
+    workers: Vec<Mutex<Worker>>,
+    /// The summed fixed-point gradient of the last step (what `read_grads` returns).
+    grads: [Vec<i64>; NUM_GROUPS],
     adam: [AdamConfig; NUM_GROUPS],
     pool: rayon::ThreadPool,
     name: String,
@@ -94,29 +184,134 @@ pub struct ParallelCpuBackend {
     images: Vec<u32>,
 }
 
-struct ParSink<'a> {
-    shared: &'a [Vec<AtomicI64>; NUM_GROUPS],
-    local: &'a mut [Vec<i64>; 3],
+/// A pool thread's private state: its own fixed-point gradient buffers for every group (plain
+/// integer adds, no atomics; summed over the workers before Adam, which gives the same integers
+/// in any order), the ray cache, scratch and the stored decoder activations of a ray.
+struct Worker {
+    grads: [Vec<i64>; NUM_GROUPS],
+    cache: Box<RayCache>,
+    scratch: Box<SampleScratch>,
+    tape_geometry: Vec<MlpScratch>,
+    tape_appearance: Vec<MlpScratch>,
 }
 
-impl ModelGradSink for ParSink<'_> {
+impl Worker {
+    fn new(lens: [usize; NUM_GROUPS]) -> Self {
+        Self {
+            grads: lens.map(|n| vec![0; n]),
+            cache: Box::new(RayCache::new()),
+            scratch: Box::new(SampleScratch::new()),
+            tape_geometry: vec![MlpScratch::new(); MAX_SAMPLES],
+            tape_appearance: vec![MlpScratch::new(); MAX_SAMPLES],
+        }
+    }
+
+    /// Runs `f` with the ray cache, scratch, tape (over the decoders' transposed weights `wt`)
+    /// and a sink into this worker's buffers.
+    fn run<R>(
+        &mut self,
+        wt: &[Vec<f32>; 2],
+        f: impl FnOnce(&mut RayCache, &mut SampleScratch, &mut StoredTape<'_>, &mut WorkerSink<'_>) -> R,
+    ) -> R {
+        let mut tape = StoredTape {
+            geometry: &mut self.tape_geometry,
+            appearance: &mut self.tape_appearance,
+            geometry_wt: &wt[0],
+            appearance_wt: &wt[1],
+        };
+        let mut sink = WorkerSink {
+            grads: &mut self.grads,
+        };
+        f(&mut self.cache, &mut self.scratch, &mut tape, &mut sink)
+    }
+}
+
+/// Adds each contribution, converted on its own with [`fixed::to_fixed`], into a worker's
+/// buffers.
+struct WorkerSink<'a> {
+    grads: &'a mut [Vec<i64>; NUM_GROUPS],
+}
+
+impl ModelGradSink for WorkerSink<'_> {
     #[inline(always)]
     fn add(&mut self, group: Group, i: usize, g: f32) {
-        let q = fixed::to_fixed(g);
-        if q == 0 {
-            return;
+        if let Some(x) = self.grads[group as usize].get_mut(i) {
+            *x = x.wrapping_add(to_fixed_host(g));
         }
-        match group {
-            Group::GeometryGrid | Group::AppearanceGrid => {
-                if let Some(a) = self.shared[group as usize].get(i) {
-                    a.fetch_add(q, Ordering::Relaxed);
+    }
+
+    #[inline(always)]
+    fn add_scaled(&mut self, group: Group, offset: usize, g: f32, xs: &[f32; MAX_WIDTH], n: usize) {
+        let n = n.min(MAX_WIDTH);
+        match self.grads[group as usize].get_mut(offset..offset + n) {
+            Some(dst) => add_scaled_row(dst, g, &xs[..n]),
+            None => {
+                for (i, &x) in xs[..n].iter().enumerate() {
+                    self.add(group, offset + i, g * x);
                 }
             }
-            Group::GeometryMlp | Group::AppearanceMlp | Group::Beta => {
-                if let Some(x) = self.local[group as usize - 2].get_mut(i) {
-                    *x = x.wrapping_add(q);
-                }
-            }
+        }
+    }
+}
+
+/// Contributions below this magnitude take [`to_fixed_small`].
+const SMALL: f32 = 2048.0;
+/// 1.5 * 2^52: adding it to an f64 below 2^51 in magnitude rounds to an integer (half to
+/// even) held in the low bits of the sum.
+const MAGIC: f64 = 6755399441055744.0;
+
+/// [`fixed::to_fixed`] for a finite `g` with `|g| < 2048`, branch-free (SIMD-friendly):
+/// `g * 2^40` is exact in f64 and below 2^51, so the magic-number addition rounds it half to
+/// even, exactly as `to_fixed` does. Tested against `to_fixed` over every 5th f32 below 2048.
+#[inline(always)]
+pub fn to_fixed_small(g: f32) -> i64 {
+    let y = g as f64 * (1u64 << fixed::FRAC_BITS) as f64;
+    ((y + MAGIC).to_bits() as i64).wrapping_sub(MAGIC.to_bits() as i64)
+}
+
+/// [`fixed::to_fixed`], taking [`to_fixed_small`] for the usual small finite contributions.
+#[inline(always)]
+pub fn to_fixed_host(g: f32) -> i64 {
+    if g.abs() < SMALL {
+        to_fixed_small(g)
+    } else {
+        fixed::to_fixed(g)
+    }
+}
+
+/// `dst[i] += to_fixed(g * xs[i])` for every i (a decoder weight row): one branch-free pass
+/// when every contribution is small and finite (the norm), [`fixed::to_fixed`] otherwise.
+#[inline(always)]
+fn add_scaled_row(dst: &mut [i64], g: f32, xs: &[f32]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked above); the function is plain safe Rust.
+            return unsafe { add_scaled_row_avx2(dst, g, xs) };
+        }
+    }
+    add_scaled_row_generic(dst, g, xs)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn add_scaled_row_avx2(dst: &mut [i64], g: f32, xs: &[f32]) {
+    add_scaled_row_generic(dst, g, xs)
+}
+
+#[inline(always)]
+fn add_scaled_row_generic(dst: &mut [i64], g: f32, xs: &[f32]) {
+    let mut small = true;
+    for &x in xs {
+        small &= (g * x).abs() < SMALL;
+    }
+    if small {
+        for (d, &x) in dst.iter_mut().zip(xs) {
+            *d = d.wrapping_add(to_fixed_small(g * x));
+        }
+    } else {
+        for (d, &x) in dst.iter_mut().zip(xs) {
+            *d = d.wrapping_add(fixed::to_fixed(g * x));
         }
     }
 }
@@ -138,7 +333,8 @@ impl ParallelCpuBackend {
         let n = pool.current_num_threads();
         let lens = data.layout.group_lens();
         Ok(Self {
-            grads: lens.map(|n| (0..n).map(|_| AtomicI64::new(0)).collect()),
+            workers: (0..n).map(|_| Mutex::new(Worker::new(lens))).collect(),
+            grads: lens.map(|n| vec![0; n]),
             data,
             adam,
             pool,
@@ -165,9 +361,30 @@ impl ParallelCpuBackend {
         &self.adam
     }
 
-    /// Forward, losses and backward of a mapping batch into the (not zeroed) gradient
-    /// buffers, with the chunking and integer accumulation of [`Self::accumulate`].
-    pub fn accumulate_pixels(
+    /// Bytes of the backend's own buffers: per-thread and summed gradients, ray tapes.
+    pub fn work_bytes(&self) -> usize {
+        let lens = self.data.layout.group_lens();
+        let grad: usize = lens.iter().sum::<usize>() * 8;
+        let tape = 2 * MAX_SAMPLES * std::mem::size_of::<MlpScratch>();
+        grad * (self.workers.len() + 1) + tape * self.workers.len()
+    }
+
+    /// Runs `item(k, worker)` for every chunk index `k < chunks` on the pool, each on the
+    /// worker state of the thread it runs on.
+    fn for_each_chunk(&self, chunks: usize, item: impl Fn(usize, &mut Worker) + Sync) {
+        let workers = &self.workers;
+        self.pool.install(|| {
+            (0..chunks).into_par_iter().for_each(|k| {
+                let w = rayon::current_thread_index().unwrap_or(0) % workers.len();
+                let mut guard = workers[w].lock().unwrap_or_else(|e| e.into_inner());
+                item(k, &mut guard);
+            });
+        });
+    }
+
+    /// Forward, losses and backward of a mapping batch into the workers' gradient buffers,
+    /// with the chunking of [`Self::accumulate`].
+    fn accumulate_pixels(
         &mut self,
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
@@ -176,8 +393,6 @@ impl ParallelCpuBackend {
         let slots = window_slots(batch, &self.store)?;
         let layout = self.data.layout;
         let params = self.data.view();
-        let shared = &self.grads;
-        let lens = layout.group_lens();
         let images = WindowImages {
             width: self.store.width,
             height: self.store.height,
@@ -189,50 +404,29 @@ impl ParallelCpuBackend {
             poses: batch.poses,
             images: &images,
         };
-        let window = &window;
-        self.pool.install(|| {
-            batch
-                .pixels
-                .par_chunks(CHUNK)
-                .zip(results.par_chunks_mut(CHUNK))
-                .enumerate()
-                .for_each(|(c, (pixels, results))| {
-                    let mut local = [
-                        vec![0i64; lens[2]],
-                        vec![0i64; lens[3]],
-                        vec![0i64; lens[4]],
-                    ];
-                    let mut cache = Box::new(RayCache::new());
-                    let mut scratch = Box::new(SampleScratch::new());
-                    {
-                        let mut sink = ParSink {
-                            shared,
-                            local: &mut local,
-                        };
-                        for (k, (px, res)) in pixels.iter().zip(results.iter_mut()).enumerate() {
-                            *res = pixel_train(
-                                &layout,
-                                &params,
-                                window,
-                                *px,
-                                (c * CHUNK + k) as u32,
-                                &batch.loss,
-                                &mut cache,
-                                &mut scratch,
-                                &mut sink,
-                            );
-                        }
-                    }
-                    for (j, buf) in local.iter().enumerate() {
-                        let dst = &shared[j + 2];
-                        for (i, &q) in buf.iter().enumerate() {
-                            if q != 0 {
-                                dst[i].fetch_add(q, Ordering::Relaxed);
-                            }
-                        }
-                    }
-                });
+        let wt = self.data.transposed_mlps();
+        let out = ChunkedOut::new(results);
+        self.for_each_chunk(out.chunks(), |c, w| {
+            let pixels = chunk_of(batch.pixels, c);
+            let mut results = out.chunk(c);
+            w.run(&wt, |cache, scratch, tape, sink| {
+                for (k, (px, res)) in pixels.iter().zip(results.iter_mut()).enumerate() {
+                    *res = pixel_train(
+                        &layout,
+                        &params,
+                        &window,
+                        *px,
+                        (c * CHUNK + k) as u32,
+                        &batch.loss,
+                        cache,
+                        scratch,
+                        tape,
+                        sink,
+                    );
+                }
+            });
         });
+        drop(out);
         Ok(summarize_pixels(results, self.data.t))
     }
 
@@ -251,14 +445,10 @@ impl ParallelCpuBackend {
         self.pool.current_num_threads()
     }
 
-    fn zero_grads(&mut self) {
-        for g in self.grads.iter_mut() {
-            g.par_iter_mut().for_each(|a| *a.get_mut() = 0);
-        }
-    }
-
-    /// Forward, loss and backward into the (not zeroed) gradient buffers.
-    pub fn accumulate(
+    /// Forward, loss and backward of `rays` into the workers' gradient buffers. Rays are cut
+    /// into chunks of [`CHUNK`] that run on whichever thread is free; ray `i` keeps its index
+    /// as jitter id, so the contributions do not depend on the schedule.
+    fn accumulate(
         &mut self,
         rays: &[Ray],
         loss: &LossConfig,
@@ -267,80 +457,79 @@ impl ParallelCpuBackend {
         himap_core::error::check_len("results", results.len(), rays.len())?;
         let layout = self.data.layout;
         let params = self.data.view();
-        let shared = &self.grads;
-        let lens = layout.group_lens();
-        self.pool.install(|| {
-            rays.par_chunks(CHUNK)
-                .zip(results.par_chunks_mut(CHUNK))
-                .enumerate()
-                .for_each(|(c, (rays, results))| {
-                    let mut local = [
-                        vec![0i64; lens[2]],
-                        vec![0i64; lens[3]],
-                        vec![0i64; lens[4]],
-                    ];
-                    let mut cache = Box::new(RayCache::new());
-                    let mut scratch = Box::new(SampleScratch::new());
-                    {
-                        let mut sink = ParSink {
-                            shared,
-                            local: &mut local,
-                        };
-                        for (k, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
-                            *res = ray_train(
-                                &layout,
-                                &params,
-                                ray,
-                                (c * CHUNK + k) as u32,
-                                loss,
-                                &mut cache,
-                                &mut scratch,
-                                &mut sink,
-                            );
-                        }
-                    }
-                    for (j, buf) in local.iter().enumerate() {
-                        let dst = &shared[j + 2];
-                        for (i, &q) in buf.iter().enumerate() {
-                            if q != 0 {
-                                dst[i].fetch_add(q, Ordering::Relaxed);
-                            }
-                        }
-                    }
-                });
+        let wt = self.data.transposed_mlps();
+        let out = ChunkedOut::new(results);
+        self.for_each_chunk(out.chunks(), |c, w| {
+            let rays = chunk_of(rays, c);
+            let mut results = out.chunk(c);
+            w.run(&wt, |cache, scratch, tape, sink| {
+                for (k, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
+                    *res = ray_train(
+                        &layout,
+                        &params,
+                        ray,
+                        (c * CHUNK + k) as u32,
+                        loss,
+                        cache,
+                        scratch,
+                        tape,
+                        sink,
+                    );
+                }
+            });
         });
+        drop(out);
         Ok(summarize(results, self.data.t))
     }
 
-    /// Adam on every group from the accumulated gradients (element-wise, in parallel).
-    pub fn apply_adam(&mut self) {
+    /// Sums the workers' gradients into `grads` (zeroing the workers' buffers for the next
+    /// step) and runs Adam on every group, element-wise in parallel ([`adam_update_hw`]).
+    fn apply_adam(&mut self) {
         self.data.t += 1;
         let t = self.data.t;
         let ModelData { params, m, v, .. } = &mut self.data;
-        let grads = &self.grads;
         let adam_cfg = &self.adam;
-        self.pool.install(|| {
-            for g in 0..NUM_GROUPS {
-                let s = AdamStep::new(&adam_cfg[g], t);
-                params[g]
-                    .par_chunks_mut(4096)
-                    .zip(m[g].par_chunks_mut(4096))
-                    .zip(v[g].par_chunks_mut(4096))
-                    .zip(grads[g].par_chunks(4096))
-                    .for_each(|(((p, m), v), gr)| {
+        let mut workers: Vec<_> = self
+            .workers
+            .iter_mut()
+            .map(|w| w.get_mut().unwrap_or_else(|e| e.into_inner()))
+            .collect();
+        const BLOCK: usize = 8192;
+        for g in 0..NUM_GROUPS {
+            let s = AdamStep::new(&adam_cfg[g], t);
+            let hw = AdamHw::new(&s);
+            let mut parts: Vec<std::slice::ChunksMut<'_, i64>> = workers
+                .iter_mut()
+                .map(|w| w.grads[g].chunks_mut(BLOCK))
+                .collect();
+            // One work item per block: the parameters, moments, summed gradient and every
+            // worker's block of the same range.
+            let mut items = Vec::with_capacity(params[g].len().div_ceil(BLOCK));
+            for (((p, m), v), sum) in params[g]
+                .chunks_mut(BLOCK)
+                .zip(m[g].chunks_mut(BLOCK))
+                .zip(v[g].chunks_mut(BLOCK))
+                .zip(self.grads[g].chunks_mut(BLOCK))
+            {
+                let blocks: Vec<&mut [i64]> = parts.iter_mut().filter_map(|it| it.next()).collect();
+                items.push((p, m, v, sum, blocks));
+            }
+            self.pool.install(|| {
+                items
+                    .into_par_iter()
+                    .for_each(|(p, m, v, sum, mut blocks)| {
                         for i in 0..p.len() {
-                            let q = gr[i].load(Ordering::Relaxed);
-                            adam::adam_update(
-                                &s,
-                                &mut p[i],
-                                &mut m[i],
-                                &mut v[i],
-                                fixed::from_fixed(q),
-                            );
+                            let mut q = 0i64;
+                            for b in blocks.iter_mut() {
+                                q = q.wrapping_add(b[i]);
+                                b[i] = 0;
+                            }
+                            sum[i] = q;
+                            hw.update(&mut p[i], &mut m[i], &mut v[i], fixed::from_fixed(q));
                         }
                     });
-            }
-        });
+            });
+        }
     }
 
     /// Signed distances at world points.
@@ -395,7 +584,6 @@ impl Backend for ParallelCpuBackend {
         loss: &LossConfig,
         results: &mut [RayResult],
     ) -> Result<StepStats, CpuError> {
-        self.zero_grads();
         let mut stats = self.accumulate(rays, loss, results)?;
         self.apply_adam();
         stats.t = self.data.t;
@@ -406,33 +594,23 @@ impl Backend for ParallelCpuBackend {
         himap_core::error::check_len("results", results.len(), rays.len())?;
         let layout = self.data.layout;
         let params = self.data.view();
-        self.pool.install(|| {
-            rays.par_chunks(CHUNK)
-                .zip(results.par_chunks_mut(CHUNK))
-                .enumerate()
-                .for_each(|(c, (rays, results))| {
-                    let mut cache = Box::new(RayCache::new());
-                    let mut scratch = Box::new(SampleScratch::new());
-                    for (k, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
-                        let id = (c * CHUNK + k) as u32;
-                        ray_forward(
-                            &layout,
-                            &params,
-                            ray,
-                            id,
-                            0,
-                            false,
-                            &mut cache,
-                            &mut scratch,
-                        );
-                        *res = RayResult {
-                            color: cache.out.color,
-                            depth: cache.out.depth,
-                            opacity: cache.out.opacity,
-                            loss: 0.0,
-                        };
-                    }
-                });
+        let wt = self.data.transposed_mlps();
+        let out = ChunkedOut::new(results);
+        self.for_each_chunk(out.chunks(), |c, w| {
+            let rays = chunk_of(rays, c);
+            let mut results = out.chunk(c);
+            w.run(&wt, |cache, scratch, tape, _| {
+                for (k, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
+                    let id = (c * CHUNK + k) as u32;
+                    ray_forward_taped(&layout, &params, ray, id, 0, false, cache, scratch, tape);
+                    *res = RayResult {
+                        color: cache.out.color,
+                        depth: cache.out.depth,
+                        opacity: cache.out.opacity,
+                        loss: 0.0,
+                    };
+                }
+            });
         });
         Ok(())
     }
@@ -447,9 +625,7 @@ impl Backend for ParallelCpuBackend {
     fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), CpuError> {
         let src = &self.grads[group as usize];
         himap_core::error::check_len(group.name(), out.len(), src.len())?;
-        for (o, a) in out.iter_mut().zip(src.iter()) {
-            *o = a.load(Ordering::Relaxed);
-        }
+        out.copy_from_slice(src);
         Ok(())
     }
 
@@ -494,7 +670,6 @@ impl Backend for ParallelCpuBackend {
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
     ) -> Result<StepStats, CpuError> {
-        self.zero_grads();
         let mut stats = self.accumulate_pixels(batch, results)?;
         self.apply_adam();
         stats.t = self.data.t;
@@ -509,5 +684,88 @@ impl Backend for ParallelCpuBackend {
         }
         self.adam[group as usize].lr = lr;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use himap_core::adam::{adam_update, AdamConfig};
+
+    /// The branch-free conversion equals the core's for every 5th f32 bit pattern below 2048
+    /// in magnitude (both signs; about 430 million values, ties and subnormals included).
+    #[test]
+    fn small_conversion_equals_to_fixed() {
+        let limit = SMALL.to_bits();
+        let bad = (0..limit / 5)
+            .into_par_iter()
+            .map(|i| i * 5)
+            .filter(|&b| {
+                let g = f32::from_bits(b);
+                to_fixed_small(g) != fixed::to_fixed(g) || to_fixed_small(-g) != fixed::to_fixed(-g)
+            })
+            .count();
+        assert_eq!(bad, 0);
+        // Exact ties at the quantum: half to even, like the core.
+        for k in 0..64 {
+            let g = (k as f32 + 0.5) * fixed::INV_SCALE;
+            assert_eq!(to_fixed_small(g), fixed::to_fixed(g), "{k}");
+            assert_eq!(to_fixed_host(-g), fixed::to_fixed(-g), "{k}");
+        }
+        for g in [f32::NAN, f32::INFINITY, -f32::INFINITY, 2048.0, -3e6, 1e30] {
+            assert_eq!(to_fixed_host(g), fixed::to_fixed(g), "{g}");
+        }
+    }
+
+    /// Rows with large or non-finite contributions take the exact path.
+    #[test]
+    fn rows_add_the_core_conversions() {
+        let xs: Vec<f32> = (0..40).map(|i| (i as f32 - 17.3) * 0.37).collect();
+        for g in [1e-7f32, 0.3, -5.0, 300.0, f32::NAN, 1e5] {
+            let mut dst = vec![7i64; xs.len()];
+            add_scaled_row(&mut dst, g, &xs);
+            for (d, &x) in dst.iter().zip(&xs) {
+                assert_eq!(*d, 7 + fixed::to_fixed(g * x), "g {g} x {x}");
+            }
+        }
+    }
+
+    /// The CPU's square root equals the core's bit-by-bit one on 2^25 inputs spread over
+    /// every exponent (non-negative: Adam only takes roots of second moments), and one Adam
+    /// update gives the core's bits.
+    #[test]
+    fn hardware_adam_equals_core_adam() {
+        let bad = (0..0x7f80_0000u32 / 61)
+            .into_par_iter()
+            .map(|i| i * 61)
+            .filter(|&b| {
+                let x = f32::from_bits(b);
+                x.sqrt().to_bits() != himap_core::math::sqrt(x).to_bits()
+            })
+            .count();
+        assert_eq!(bad, 0);
+        let mut rng = himap_core::rng::SplitMix::new(3);
+        for t in [1u32, 2, 17, 1000] {
+            for lr in [0.01f32, 1e-5, 0.1] {
+                let s = AdamStep::new(&AdamConfig::new(lr), t);
+                let hw = AdamHw::new(&s);
+                for _ in 0..2000 {
+                    let grad = (rng.unit() - 0.5) * 10f32.powi((rng.unit() * 12.0) as i32 - 8);
+                    let (p, m, v) = (
+                        rng.unit() - 0.5,
+                        (rng.unit() - 0.5) * 1e-2,
+                        rng.unit() * 1e-4,
+                    );
+                    let (mut p1, mut m1, mut v1) = (p, m, v);
+                    let (mut p2, mut m2, mut v2) = (p, m, v);
+                    adam_update(&s, &mut p1, &mut m1, &mut v1, grad);
+                    hw.update(&mut p2, &mut m2, &mut v2, grad);
+                    assert_eq!(
+                        [p1.to_bits(), m1.to_bits(), v1.to_bits()],
+                        [p2.to_bits(), m2.to_bits(), v2.to_bits()]
+                    );
+                }
+            }
+        }
     }
 }

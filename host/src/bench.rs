@@ -26,8 +26,13 @@ pub struct BenchRow {
     pub train_ms_per_step: f64,
 }
 
-/// Random rays from inside `aabb` (shrunk by 20%) in random directions.
+/// Random rays from inside `aabb` (shrunk by 20%) in random directions (each component
+/// uniform in [-1, 1]; normalised to unit length when `unit`).
 pub fn rays_in(aabb: &Aabb, n: usize, seed: u64) -> Vec<Ray> {
+    rays_in_dirs(aabb, n, seed, false)
+}
+
+fn rays_in_dirs(aabb: &Aabb, n: usize, seed: u64, unit: bool) -> Vec<Ray> {
     let mut r = SplitMix::new(seed);
     (0..n)
         .map(|_| {
@@ -37,11 +42,15 @@ pub fn rays_in(aabb: &Aabb, n: usize, seed: u64) -> Vec<Ray> {
                 let h = 0.4 * (aabb.max[a] - aabb.min[a]);
                 *o = c + h * (2.0 * r.unit() - 1.0);
             }
-            let d = [
+            let mut d = [
                 2.0 * r.unit() - 1.0,
                 2.0 * r.unit() - 1.0,
                 2.0 * r.unit() - 1.0,
             ];
+            if unit {
+                let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-6);
+                d = d.map(|x| x / len);
+            }
             Ray {
                 origin: o,
                 dir: d,
@@ -52,16 +61,35 @@ pub fn rays_in(aabb: &Aabb, n: usize, seed: u64) -> Vec<Ray> {
         .collect()
 }
 
-/// The configurations benchmarked: `small` (the dump-step model) and `paper` (the paper's
-/// grids and decoders over a 6 x 6 x 3 m room).
+/// The configurations benchmarked: `small` (the dump-step model), `paper` (the paper's grids
+/// and decoders over a 6 x 6 x 3 m room, 48 samples per ray) and `step` (the paper's model over
+/// a 4 m cube with 64 samples per ray and unit directions: the step
+/// `scripts/bench_step_torch.py` times in PyTorch).
 pub fn configs() -> Vec<(&'static str, ModelConfig)> {
+    let mut step = ModelConfig::paper(Aabb::new([-2.0; 3], [2.0; 3]));
+    step.samples = 64;
     vec![
         ("small", crate::dump::small_config(RenderMode::SdfDensity)),
         (
             "paper (6x6x3 m room)",
             ModelConfig::paper(Aabb::new([-3.0, -3.0, -1.5], [3.0, 3.0, 1.5])),
         ),
+        ("step (paper, 4 m cube)", step),
     ]
+}
+
+/// Operation count of one training sample of the paper's model (forward, backward, Adam's
+/// share), the estimate of issue #12: about 35 kFLOP.
+pub const FLOP_PER_TRAIN_SAMPLE: f64 = 35e3;
+/// Two AVX-512 cores without fused multiply-add: about 160 GFLOP/s.
+pub const PEAK_FLOPS_2_CORES: f64 = 160e9;
+
+/// Peak resident memory of this process so far (Linux `VmHWM`), bytes.
+pub fn peak_rss_bytes() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
 }
 
 /// Times `steps` renders (forward) and `steps` training steps (forward + backward + Adam) of
@@ -76,7 +104,7 @@ where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
     let steps = steps.max(1);
-    let batch = rays_in(&cfg.aabb, rays, 7);
+    let batch = rays_in_dirs(&cfg.aabb, rays, 7, cfg.samples == 64);
     let mut res = vec![RayResult::default(); rays];
     be.render(&batch, &mut res)?; // warm-up
     let t = Instant::now();
@@ -139,7 +167,8 @@ pub fn bench_cpu(
     let data = ModelData::new(layout, 1)?;
     let mut be = ParallelCpuBackend::new(data, paper_adam(), threads)?;
     let t = measure(&mut be, cfg, rays, steps)?;
-    Ok(row(be.name(), name, cfg, &layout, rays, 0, t))
+    let work = be.work_bytes() - layout.param_count() * 8;
+    Ok(row(be.name(), name, cfg, &layout, rays, work, t))
 }
 
 /// Measures the Vulkan backend on the selected device. The memory column adds the per-batch
@@ -179,8 +208,8 @@ pub fn run_bench(opts: &BenchOptions, out: &mut dyn std::io::Write) -> anyhow::R
     if !want_cpu && !want_vk {
         anyhow::bail!("--backend must be cpu, vulkan or all");
     }
-    if !matches!(opts.configs.as_str(), "small" | "paper" | "all") {
-        anyhow::bail!("--config must be small, paper or all");
+    if !matches!(opts.configs.as_str(), "small" | "paper" | "step" | "all") {
+        anyhow::bail!("--config must be small, paper, step or all");
     }
     writeln!(out, "{}", header())?;
     for (name, cfg) in configs() {
@@ -190,6 +219,23 @@ pub fn run_bench(opts: &BenchOptions, out: &mut dyn std::io::Write) -> anyhow::R
         if want_cpu {
             let r = bench_cpu(name, &cfg, opts.threads, opts.rays, opts.steps)?;
             writeln!(out, "{}", format_row(&r))?;
+            if name.starts_with("step") {
+                let flop = FLOP_PER_TRAIN_SAMPLE * (r.rays * r.samples_per_ray as usize) as f64;
+                let bound_ms = flop / PEAK_FLOPS_2_CORES * 1e3;
+                writeln!(
+                    out,
+                    "  {}: {:.1} ms per step = {:.1} % of the {:.0} ms bound ({:.2} GFLOP at \
+                     160 GFLOP/s); peak memory of the process {}",
+                    r.backend,
+                    r.train_ms_per_step,
+                    100.0 * bound_ms / r.train_ms_per_step,
+                    bound_ms,
+                    flop / 1e9,
+                    peak_rss_bytes()
+                        .map(|b| format!("{:.0} MB", b as f64 / 1e6))
+                        .unwrap_or_else(|| "unknown".into())
+                )?;
+            }
         }
         if want_vk {
             match bench_vulkan(name, &cfg, opts.rays, opts.steps) {

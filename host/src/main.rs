@@ -84,7 +84,8 @@ enum Command {
         /// Backends to measure: cpu, vulkan or all.
         #[arg(long, default_value = "all")]
         backend: String,
-        /// Configurations: small, paper or all.
+        /// Configurations: small, paper, step (the paper's model over a 4 m cube, 64 samples
+        /// per ray: the step `scripts/bench_step_torch.py` times) or all.
         #[arg(long, default_value = "all")]
         config: String,
         /// CPU worker threads (0 = all cores).
