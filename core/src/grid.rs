@@ -745,6 +745,7 @@ fn vm_interp_rows(r: &[&[f32]; 18], c: usize, f: [f32; 3]) -> ([f32; 3], [f32; 3
 /// runs in SIMD lanes): every feature is the same sequence of operations, so the same bits
 /// (tested). Dense grids and corrupted layouts take [`grid_forward`]. Host-side; the GPU runs
 /// [`grid_forward`].
+#[inline]
 pub fn grid_forward_rows(
     layout: &GridLayout,
     params: &[f32],
@@ -777,6 +778,7 @@ pub fn grid_forward_rows(
 /// same product as in [`grid_backward`] (a product of two factors either way round is the same
 /// f32), so the integer sums are the same (tested). Dense grids and corrupted layouts take
 /// [`grid_backward`]. Host-side; the GPU runs [`grid_backward`].
+#[inline]
 pub fn grid_backward_rows<S: GradSink>(
     layout: &GridLayout,
     params: &[f32],
@@ -790,6 +792,9 @@ pub fn grid_backward_rows<S: GradSink>(
         return;
     }
     let (xn, _) = normalize_with_mask(&layout.aabb, p);
+    // Per channel: g * (the other factor) of every term: lines x, y, z; planes xy, xz, yz
+    // (entries [..nc] are rewritten at every level).
+    let mut gl = [[0.0f32; crate::mlp::MAX_WIDTH]; 6];
     let mut l = 0;
     while l < nl {
         let lv = &layout.level[l];
@@ -799,8 +804,6 @@ pub fn grid_backward_rows<S: GradSink>(
             grid_backward(layout, params, p, d_feat, sink);
             return;
         };
-        // Per channel: g * (the other factor) of every term: lines x, y, z; planes xy, xz, yz.
-        let mut gl = [[0.0f32; crate::mlp::MAX_WIDTH]; 6];
         let d = &d_feat[l * nc..(l + 1) * nc];
         for (c, &g) in d.iter().enumerate() {
             let ([vx, vy, vz], [mxy, mxz, myz]) = vm_interp_rows(&r, c, cell.f);

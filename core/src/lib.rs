@@ -91,6 +91,18 @@ pub trait ParamRead {
     fn as_slice(&self) -> Option<&[f32]> {
         None
     }
+
+    /// `acc[i] += self.at(offset + i) * g` for every `i < n`, each `acc[i]` on its own (a
+    /// decoder row's share of the input gradient). A slice does it over a sub-slice, which a
+    /// CPU vectorises; the operations are the same.
+    #[inline(always)]
+    fn axpy(&self, offset: usize, g: f32, acc: &mut [f32; mlp::MAX_WIDTH], n: usize) {
+        let mut i = 0;
+        while i < n && i < mlp::MAX_WIDTH {
+            acc[i] += self.at(offset + i) * g;
+            i += 1;
+        }
+    }
 }
 
 impl ParamRead for [f32] {
@@ -102,6 +114,30 @@ impl ParamRead for [f32] {
     #[inline(always)]
     fn at(&self, i: usize) -> f32 {
         self[i]
+    }
+
+    #[inline(always)]
+    fn axpy(&self, offset: usize, g: f32, acc: &mut [f32; mlp::MAX_WIDTH], n: usize) {
+        let n = if n > mlp::MAX_WIDTH {
+            mlp::MAX_WIDTH
+        } else {
+            n
+        };
+        match self.get(offset..offset + n) {
+            Some(row) => {
+                for (a, &w) in acc[..n].iter_mut().zip(row) {
+                    *a += w * g;
+                }
+            }
+            None => {
+                // Out of range: the element-wise form (indexes, and panics, like `at`).
+                let mut i = 0;
+                while i < n {
+                    acc[i] += self.at(offset + i) * g;
+                    i += 1;
+                }
+            }
+        }
     }
 }
 

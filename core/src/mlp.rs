@@ -325,6 +325,7 @@ pub fn transpose_weights(layout: &MlpLayout, params: &[f32], out: &mut [f32]) ->
 /// `bias + w_0 x_0 + w_1 x_1 + ...` in input order, the operations of [`mlp_forward`], so the
 /// outputs and activations are the same bits (tested). Host-side: the GPU runs
 /// [`mlp_forward`].
+#[inline]
 pub fn mlp_forward_transposed(
     layout: &MlpLayout,
     wt: &[f32],
@@ -345,12 +346,19 @@ pub fn mlp_forward_transposed(
         let w_off = layout.weight_offsets[k] as usize;
         let b_off = layout.bias_offsets[k] as usize;
         let mut acc = [0.0f32; MAX_WIDTH];
-        acc[..fan_out].copy_from_slice(&wt[b_off..b_off + fan_out]);
         let x = &scratch.act[k];
-        for (i, &xi) in x[..fan_in].iter().enumerate() {
-            let col = &wt[w_off + i * fan_out..w_off + (i + 1) * fan_out];
-            for (a, &w) in acc[..fan_out].iter_mut().zip(col) {
-                *a += w * xi;
+        if fan_out == 32 {
+            // The decoders' width (paper and presets): a fixed-size accumulator the compiler
+            // keeps in registers.
+            let a32 = layer_transposed::<32>(wt, w_off, b_off, &x[..fan_in]);
+            acc[..32].copy_from_slice(&a32);
+        } else {
+            acc[..fan_out].copy_from_slice(&wt[b_off..b_off + fan_out]);
+            for (i, &xi) in x[..fan_in].iter().enumerate() {
+                let col = &wt[w_off + i * fan_out..w_off + (i + 1) * fan_out];
+                for (a, &w) in acc[..fan_out].iter_mut().zip(col) {
+                    *a += w * xi;
+                }
             }
         }
         if k < layers {
@@ -369,6 +377,21 @@ pub fn mlp_forward_transposed(
         }
         k += 1;
     }
+}
+
+/// One layer of `N` units over transposed weights: `bias_j + w_0j x_0 + w_1j x_1 + ...` in
+/// input order for every unit `j` (the caller checked that the weights fit).
+#[inline(always)]
+fn layer_transposed<const N: usize>(wt: &[f32], w_off: usize, b_off: usize, x: &[f32]) -> [f32; N] {
+    let mut acc = [0.0f32; N];
+    acc.copy_from_slice(&wt[b_off..b_off + N]);
+    let cols = &wt[w_off..w_off + x.len() * N];
+    for (col, &xi) in cols.chunks_exact(N).zip(x) {
+        for (a, &w) in acc.iter_mut().zip(col) {
+            *a += w * xi;
+        }
+    }
+    acc
 }
 
 /// ReLU that maps negative numbers and both zeros to `+0.0` and propagates NaN (like
@@ -437,11 +460,7 @@ pub fn mlp_backward<P: ParamRead + ?Sized, S: GradSink>(
                 sink.add(b_off + j, g);
                 sink.add_scaled(row, g, &scratch.act[k], fan_in);
             }
-            let mut i = 0;
-            while i < fan_in {
-                d_prev[i] += params.at(row + i) * g;
-                i += 1;
-            }
+            params.axpy(row, g, &mut d_prev, fan_in);
             j += 1;
         }
         delta = d_prev;
