@@ -4,13 +4,13 @@
 # one ablation table; every run's outputs (metrics.csv, summary.json, mesh.ply, renders/) stay
 # in $OUT.
 #
-# Time on the 2-core development VM (release build, THREADS=2, measured 2026-11-23 with the
+# Time on the 2-core development VM (release build, THREADS=2, measured 2026-12-01 with the
 # 48-sample, 64..4 cm `small` preset):
-#   demo room (60 frames 128x96)                        about 4 min
-#   ICL living room 1 (frames 0..30, 320x240)           about 4-5 min
-#   7-Scenes redkitchen (frames 0..30, 320x240)         about 4-5 min
-#   ablations on ICL: 5 more runs                       about 20-25 min
-#   total                                               about 35 min
+#   demo room (60 frames 128x96)                        about 1 min (100-150 ms per iteration)
+#   ICL living room 1 (frames 0..30, 320x240)           about 1 min (150 ms per iteration)
+#   7-Scenes redkitchen (frames 0..30, 320x240)         about 1 min (150 ms per iteration)
+#   ablations on ICL: 5 more runs                       about 6 min
+#   total                                               about 10 min
 # Per-region mesh metrics of the demo room: scripts/demo_regions.py (numpy, scipy).
 #
 # Usage: scripts/quality.sh [--no-ablation] [--only demo|icl|7scenes] [--table-only]

@@ -1528,6 +1528,8 @@ mod tests {
         for (layout, seed) in [
             (small(GridKind::Factorized), 1),
             (one_level(GridKind::Factorized, 7), 2),
+            (one_level(GridKind::Factorized, 16), 3),
+            (one_level(GridKind::Factorized, 32), 4),
         ] {
             let params = random_params(&layout, seed);
             for trial in 0..400 {

@@ -386,7 +386,7 @@ fn layer_transposed<const N: usize>(wt: &[f32], w_off: usize, b_off: usize, x: &
     let mut acc = [0.0f32; N];
     acc.copy_from_slice(&wt[b_off..b_off + N]);
     let cols = &wt[w_off..w_off + x.len() * N];
-    for (col, &xi) in cols.chunks_exact(N).zip(x) {
+    for (col, &xi) in cols.as_chunks::<N>().0.iter().zip(x) {
         for (a, &w) in acc.iter_mut().zip(col) {
             *a += w * xi;
         }

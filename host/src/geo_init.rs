@@ -6,15 +6,16 @@
 //! 1.5 m depth prior (which, applied per view, is not consistent between views).
 //!
 //! The fit is plain host code (single thread, f32 accumulation in a fixed order, the core's
-//! `sdf_at` / `sdf_backward` and `adam_update`), so it is deterministic and independent of the
-//! backend and thread count; the backend receives the fitted parameters as its initial state.
-//! Adam moments of the mapping run start at zero as before.
+//! `sdf_at` / `sdf_backward_taped` and the operations of `adam_update`), so it is
+//! deterministic and independent of the backend and thread count; the backend receives the
+//! fitted parameters as its initial state. Adam moments of the mapping run start at zero as
+//! before.
 
-use himap_core::adam::{adam_update, AdamConfig, AdamStep};
-use himap_core::model::{sdf_at, sdf_backward, Group, ModelGradSink, SampleScratch};
+use himap_core::adam::{AdamConfig, AdamStep};
+use himap_core::model::{sdf_at, sdf_backward_taped, Group, ModelGradSink, SampleScratch};
 use himap_core::rng::SplitMix;
 
-use crate::backend::ModelData;
+use crate::backend::{AdamHw, ModelData};
 
 /// Settings of the sphere fit.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -91,23 +92,26 @@ pub fn fit_sphere(data: &mut ModelData, init: &SphereInit) -> f32 {
                 let s = sdf_at(&layout, &params, p, &mut scratch);
                 let r = s - target;
                 err += r * r;
-                sdf_backward(
+                // `sdf_at` just left this point's activations in the scratch: the backward
+                // of `sdf_backward` without evaluating the point again (same contributions).
+                sdf_backward_taped(
                     &layout,
                     &params,
                     p,
                     2.0 * r / n as f32,
-                    &mut scratch,
+                    &scratch.mlp,
                     &mut sink,
                 );
             }
         }
         mse = err / n as f32;
-        let step = AdamStep::new(&cfg, it + 1);
+        // `adam_update`'s bits with the CPU's square root (see `AdamHw`).
+        let step = AdamHw::new(&AdamStep::new(&cfg, it + 1));
         for (i, p) in data.params[gi].iter_mut().enumerate() {
-            adam_update(&step, p, &mut m_grid[i], &mut v_grid[i], g_grid[i]);
+            step.update(p, &mut m_grid[i], &mut v_grid[i], g_grid[i]);
         }
         for (i, p) in data.params[mi].iter_mut().enumerate() {
-            adam_update(&step, p, &mut m_mlp[i], &mut v_mlp[i], g_mlp[i]);
+            step.update(p, &mut m_mlp[i], &mut v_mlp[i], g_mlp[i]);
         }
     }
     mse
