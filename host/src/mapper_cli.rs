@@ -12,7 +12,7 @@
 //! `adam_t`; [`load_map`] rebuilds the field from it alone.
 
 use std::collections::HashMap;
-use std::io::Write;
+use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -345,6 +345,114 @@ fn mean(v: impl Iterator<Item = f64>) -> Option<f64> {
     (n > 0).then(|| s / n as f64)
 }
 
+/// The columns of `metrics.csv`, one row per mapping update.
+const CSV_HEADER: &str = "frame,kind,psnr,ssim,depth_l1_cm,loss_first,loss,color_loss,warp_loss,\
+warp_valid,window_keyframes,iters,seconds";
+
+/// Appends one update's row to `metrics.csv`.
+fn write_csv_row(csv: &mut impl Write, r: &UpdateMetrics) -> std::io::Result<()> {
+    writeln!(
+        csv,
+        "{},{},{:.4},{:.4},{},{:.6},{:.6},{:.6},{:.6},{:.4},{},{},{:.3}",
+        r.frame,
+        r.kind,
+        r.psnr,
+        r.ssim,
+        r.depth_l1_cm.map(|d| format!("{d:.3}")).unwrap_or_default(),
+        r.loss_first,
+        r.loss,
+        r.color_loss,
+        r.warp_loss,
+        r.warp_valid,
+        r.window_keyframes,
+        r.iters,
+        r.seconds
+    )
+}
+
+/// Progress as plain lines on stderr, at most one every [`PlainLog::EVERY`] (plus one per
+/// mapping update and one at the end), for runs whose stderr is not a terminal.
+struct PlainLog {
+    on: bool,
+    frames: usize,
+    start: Instant,
+    last: Option<Instant>,
+    updates: usize,
+}
+
+impl PlainLog {
+    const EVERY: std::time::Duration = std::time::Duration::from_secs(5);
+
+    fn new(on: bool, frames: usize) -> Self {
+        Self {
+            on,
+            frames,
+            start: Instant::now(),
+            last: None,
+            updates: 0,
+        }
+    }
+
+    fn due(&mut self) -> bool {
+        let now = Instant::now();
+        let due = self.on && self.last.is_none_or(|t| now - t >= Self::EVERY);
+        if due {
+            self.last = Some(now);
+        }
+        due
+    }
+
+    fn iteration(&mut self, frame: usize, info: &IterInfo) {
+        if self.due() {
+            eprintln!(
+                "[{:7.1} s] frame {}/{} {} iteration {}/{} loss {:.4}",
+                self.start.elapsed().as_secs_f64(),
+                frame + 1,
+                self.frames,
+                if info.kind == UpdateKind::Init {
+                    "init"
+                } else {
+                    "map"
+                },
+                info.iter + 1,
+                info.iters,
+                info.loss
+            );
+        }
+    }
+
+    fn update(&mut self, r: &UpdateMetrics) {
+        if self.on {
+            self.last = Some(Instant::now());
+            self.updates += 1;
+            eprintln!(
+                "[{:7.1} s] update {} ({}) at frame {}: PSNR {:.2} dB, SSIM {:.3}, Depth L1 {}, \
+                 {} iterations in {:.1} s",
+                self.start.elapsed().as_secs_f64(),
+                self.updates,
+                r.kind,
+                r.frame,
+                r.psnr,
+                r.ssim,
+                r.depth_l1_cm
+                    .map(|d| format!("{d:.1} cm"))
+                    .unwrap_or_else(|| "-".into()),
+                r.iters,
+                r.seconds
+            );
+        }
+    }
+
+    fn done(&mut self, updates: usize, mapping_s: f64) {
+        if self.on {
+            eprintln!(
+                "[{:7.1} s] mapping done: {updates} updates in {mapping_s:.1} s; evaluating and writing outputs",
+                self.start.elapsed().as_secs_f64()
+            );
+        }
+    }
+}
+
 /// Maps a sequence and writes every output into `opts.out`.
 pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     let t_start = Instant::now();
@@ -471,7 +579,20 @@ where
     };
     let render_every = (expected_updates / cfg.eval.renders.max(1) as usize).max(1);
 
-    let pb = if opts.progress {
+    // metrics.csv: the header now, one flushed row per update, so a run killed halfway keeps
+    // what it measured.
+    let csv_path = opts.out.join("metrics.csv");
+    let mut csv = std::io::BufWriter::new(
+        std::fs::File::create(&csv_path)
+            .with_context(|| format!("writing {}", csv_path.display()))?,
+    );
+    writeln!(csv, "{CSV_HEADER}")?;
+    csv.flush()?;
+    // Without a terminal (a log file, a service) the progress bar draws nothing: plain lines
+    // every few seconds instead.
+    let plain = opts.progress && !std::io::stderr().is_terminal();
+    let log = std::cell::RefCell::new(PlainLog::new(plain, n));
+    let pb = if opts.progress && !plain {
         let pb = indicatif::ProgressBar::new(n as u64);
         pb.set_style(
             indicatif::ProgressStyle::with_template(
@@ -494,7 +615,8 @@ where
                   frame: &crate::dataset::Frame,
                   seconds: f64,
                   rows: &mut Vec<UpdateMetrics>,
-                  last_psnr: &mut f64|
+                  last_psnr: &mut f64,
+                  csv: &mut std::io::BufWriter<std::fs::File>|
      -> anyhow::Result<()> {
         let u = rows.len();
         let eval = cfg.eval.every > 0 && u.is_multiple_of(cfg.eval.every as usize);
@@ -545,6 +667,12 @@ where
             iters: report.iters,
             seconds,
         });
+        if let Some(r) = rows.last() {
+            write_csv_row(csv, r)?;
+            csv.flush()
+                .with_context(|| format!("writing {}", csv_path.display()))?;
+            log.borrow_mut().update(r);
+        }
         Ok(())
     };
 
@@ -571,6 +699,7 @@ where
             if info.iter.is_multiple_of(10) {
                 pb.tick();
             }
+            log.borrow_mut().iteration(i, info);
         };
         let rep = mapper
             .push_frame_observed(&rgba, frame.pose, &mut observe)
@@ -578,7 +707,15 @@ where
         let dt = t0.elapsed().as_secs_f64();
         if let Some(r) = rep {
             mapping_s += dt;
-            handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
+            handle(
+                &mut mapper,
+                r,
+                &frame,
+                dt,
+                &mut rows,
+                &mut last_psnr,
+                &mut csv,
+            )?;
         }
         pb.inc(1);
         last_frame = Some(frame);
@@ -591,42 +728,22 @@ where
         {
             let dt = t0.elapsed().as_secs_f64();
             mapping_s += dt;
-            handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
+            handle(
+                &mut mapper,
+                r,
+                &frame,
+                dt,
+                &mut rows,
+                &mut last_psnr,
+                &mut csv,
+            )?;
         }
     }
     pb.finish_and_clear();
     let iterations = mapper.iterations();
 
-    // metrics.csv
-    let csv_path = opts.out.join("metrics.csv");
-    let mut csv = std::io::BufWriter::new(
-        std::fs::File::create(&csv_path)
-            .with_context(|| format!("writing {}", csv_path.display()))?,
-    );
-    writeln!(
-        csv,
-        "frame,kind,psnr,ssim,depth_l1_cm,loss_first,loss,color_loss,warp_loss,warp_valid,window_keyframes,iters,seconds"
-    )?;
-    for r in &rows {
-        writeln!(
-            csv,
-            "{},{},{:.4},{:.4},{},{:.6},{:.6},{:.6},{:.6},{:.4},{},{},{:.3}",
-            r.frame,
-            r.kind,
-            r.psnr,
-            r.ssim,
-            r.depth_l1_cm.map(|d| format!("{d:.3}")).unwrap_or_default(),
-            r.loss_first,
-            r.loss,
-            r.color_loss,
-            r.warp_loss,
-            r.warp_valid,
-            r.window_keyframes,
-            r.iters,
-            r.seconds
-        )?;
-    }
-    csv.flush()?;
+    drop(csv);
+    log.borrow_mut().done(rows.len(), mapping_s);
 
     // mesh
     let mut backend = mapper.into_backend();

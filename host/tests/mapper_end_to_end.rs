@@ -128,3 +128,66 @@ fn saved_map_renders_bit_identically_after_loading() {
     let e = load_map(&dir.path().join("missing.safetensors")).unwrap_err();
     assert!(format!("{e:#}").contains("reading"), "{e:#}");
 }
+
+/// A run killed after its first mapping update keeps that update's row in `metrics.csv`
+/// (written and flushed per update), and with stderr not a terminal the progress arrives as
+/// plain log lines (the first of which is how this test knows when to kill it).
+#[test]
+fn killed_run_keeps_its_metrics_rows_and_logs_plain_lines() {
+    use std::io::{BufRead, BufReader};
+    use std::process::{Command, Stdio};
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("room");
+    write_synthetic(
+        &data,
+        &SynthOptions {
+            frames: 40,
+            width: 64,
+            height: 48,
+            seed: 2,
+        },
+    )
+    .unwrap();
+    let mut cfg = tiny_config();
+    // Long online updates: the run is still mapping when the test kills it.
+    cfg.mapper.iters = 400;
+    let cfg_path = dir.path().join("tiny.toml");
+    std::fs::write(&cfg_path, cfg.to_toml()).unwrap();
+    let out = dir.path().join("out");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_himap"))
+        .arg("map")
+        .arg(&data)
+        .arg("--out")
+        .arg(&out)
+        .arg("--config")
+        .arg(&cfg_path)
+        .args(["--backend", "cpu", "--threads", "2"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = Vec::new();
+    for line in BufReader::new(child.stderr.take().unwrap()).lines() {
+        let line = line.unwrap();
+        let first_update = line.contains("update 1 (init) at frame 14");
+        lines.push(line);
+        if first_update {
+            break;
+        }
+    }
+    child.kill().unwrap();
+    let status = child.wait().unwrap();
+    assert!(!status.success(), "the run finished before it was killed");
+    assert!(
+        lines
+            .iter()
+            .any(|l| l.contains("update 1 (init) at frame 14: PSNR")),
+        "no plain update line in {lines:?}"
+    );
+    let csv = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
+    let rows: Vec<&str> = csv.lines().collect();
+    assert!(rows.len() >= 2, "metrics.csv: {csv}");
+    assert!(rows[0].starts_with("frame,kind,psnr"));
+    assert!(rows[1].starts_with("14,init,"), "{}", rows[1]);
+    assert!(!out.join("summary.json").exists());
+}
