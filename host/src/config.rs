@@ -184,6 +184,10 @@ pub struct EvalSection {
     /// Culling of the reconstruction for the mesh metrics: "none", "frustum", "occlusion";
     /// "auto" = none with a ground-truth mesh, frustum with a depth ground truth.
     pub cull: String,
+    /// After mapping, re-render every k-th frame of the whole sequence from the final map and
+    /// report its averages (`final_*` in summary.json), so forgetting of early regions shows
+    /// (0 = off).
+    pub final_every: u32,
 }
 
 /// Everything of a mapping run.
@@ -349,6 +353,7 @@ impl Config {
                 mesh_level: None,
                 mesh_samples: 200_000,
                 cull: "auto".into(),
+                final_every: 10,
             },
         }
     }

@@ -87,6 +87,12 @@ pub struct MapSummary {
     pub mean_psnr: Option<f64>,
     pub mean_ssim: Option<f64>,
     pub mean_depth_l1_cm: Option<f64>,
+    /// The final map re-rendered at every `eval.final_every`-th frame of the whole sequence:
+    /// how many frames, and their average PSNR, SSIM, Depth L1 (cm).
+    pub final_frames: usize,
+    pub final_psnr: Option<f64>,
+    pub final_ssim: Option<f64>,
+    pub final_depth_l1_cm: Option<f64>,
     /// Accuracy, Completion (cm), Completion ratio (%) when a ground truth exists.
     pub mesh: Option<crate::eval::MeshMetrics>,
     pub mesh_ground_truth: Option<String>,
@@ -745,8 +751,18 @@ where
     drop(csv);
     log.borrow_mut().done(rows.len(), mapping_s);
 
-    // mesh
     let mut backend = mapper.into_backend();
+    let fin = final_map_eval(&mut backend, ds, &ek, cfg.eval.final_every as usize)?;
+    if opts.progress {
+        eprintln!(
+            "final map over {} frames of the sequence: PSNR {} dB, SSIM {}, Depth L1 {} cm",
+            fin.frames,
+            fmt_opt(fin.psnr, 2),
+            fmt_opt(fin.ssim, 3),
+            fmt_opt(fin.depth_l1_cm, 2)
+        );
+    }
+    // mesh
     let beta = {
         let mut b = [0.0f32; 1];
         backend.read_params(Group::Beta, &mut b)?;
@@ -806,6 +822,10 @@ where
         mean_psnr: mean(rows.iter().map(|r| r.psnr)),
         mean_ssim: mean(rows.iter().map(|r| r.ssim)),
         mean_depth_l1_cm: mean(rows.iter().filter_map(|r| r.depth_l1_cm)),
+        final_frames: fin.frames,
+        final_psnr: fin.psnr,
+        final_ssim: fin.ssim,
+        final_depth_l1_cm: fin.depth_l1_cm,
         mesh: mesh_metrics,
         mesh_ground_truth: mesh_gt,
         mesh_error: mesh_err,
@@ -823,6 +843,61 @@ where
     std::fs::write(&sp, serde_json::to_string_pretty(&summary)?)
         .with_context(|| format!("writing {}", sp.display()))?;
     Ok(summary)
+}
+
+/// Averages of the final map re-rendered over the sequence.
+struct FinalEval {
+    frames: usize,
+    psnr: Option<f64>,
+    ssim: Option<f64>,
+    depth_l1_cm: Option<f64>,
+}
+
+/// Renders frames 0, k, 2k, ... of `ds` from the map in `backend` at `ek` (after mapping: the
+/// evaluation may read any frame) and averages PSNR, SSIM and Depth L1 over them.
+fn final_map_eval<B: Backend>(
+    backend: &mut B,
+    ds: &dyn crate::dataset::Dataset,
+    ek: &Intrinsics,
+    every: usize,
+) -> anyhow::Result<FinalEval>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let (mut psnr, mut ssim, mut dl1) = (Vec::new(), Vec::new(), Vec::new());
+    if every > 0 {
+        for i in (0..ds.len()).step_by(every) {
+            let frame = ds.frame(i)?;
+            let out = render_view(backend, ek, &frame.pose)?;
+            let input = frame.rgb.resized(ek.width, ek.height);
+            let rendered: Vec<f32> = out.iter().flat_map(|r| r.color).collect();
+            psnr.push(crate::metrics::psnr(&rendered, &input.data));
+            ssim.push(crate::metrics::ssim(
+                &rendered,
+                &input.data,
+                ek.width as usize,
+                ek.height as usize,
+            ));
+            if let Some(d) = &frame.depth {
+                let depth: Vec<f32> = out.iter().map(|r| r.depth).collect();
+                dl1.extend(crate::metrics::depth_l1_cm(
+                    &depth,
+                    &d.resized(ek.width, ek.height).data,
+                ));
+            }
+        }
+    }
+    Ok(FinalEval {
+        frames: psnr.len(),
+        psnr: mean(psnr.iter().copied()),
+        ssim: mean(ssim.iter().copied()),
+        depth_l1_cm: mean(dl1.iter().copied()),
+    })
+}
+
+fn fmt_opt(x: Option<f64>, digits: usize) -> String {
+    x.map(|v| format!("{v:.digits$}"))
+        .unwrap_or_else(|| "-".into())
 }
 
 /// The SDF level of the surfaces the field renders, estimated without ground truth: `views`
@@ -940,6 +1015,15 @@ pub fn summary_table(s: &MapSummary) -> String {
         f(s.mean_ssim, 3),
         f(s.mean_depth_l1_cm, 2)
     );
+    if s.final_frames > 0 {
+        t += &format!(
+            "final map over {} frames of the sequence: PSNR {} dB | SSIM {} | Depth L1 {} cm\n",
+            s.final_frames,
+            f(s.final_psnr, 2),
+            f(s.final_ssim, 3),
+            f(s.final_depth_l1_cm, 2)
+        );
+    }
     match &s.mesh {
         Some(m) => {
             t += &format!(

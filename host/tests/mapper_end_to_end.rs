@@ -74,6 +74,9 @@ fn map_writes_all_outputs_and_the_loss_goes_down() {
     let (first, last): (f64, f64) = (init[5].parse().unwrap(), init[6].parse().unwrap());
     assert!(last < 0.9 * first, "init loss {first} -> {last}");
     assert!(s.mean_psnr.unwrap() > 5.0 && s.mean_depth_l1_cm.is_some());
+    // The final map re-rendered at frames 0 and 10 (eval.final_every = 10).
+    assert_eq!(s.final_frames, 2);
+    assert!(s.final_psnr.unwrap() > 5.0 && s.final_depth_l1_cm.is_some());
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(json["config"]["mapper"]["init_iters"], 40);
