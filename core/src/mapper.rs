@@ -292,6 +292,10 @@ pub struct IterInfo {
     pub warp_loss: f32,
     /// Fraction of sampled pixels with a valid warp term.
     pub warp_valid: f32,
+    /// Fraction of sampled pixels whose ray leaves the scene box mostly unabsorbed (rendered
+    /// opacity < 0.5): it met no surface inside the box (a box too small there, or space not
+    /// mapped yet).
+    pub open_rays: f32,
 }
 
 /// What one mapping update did.
@@ -836,6 +840,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
             color_loss: 0.0,
             warp_loss: 0.0,
             warp_valid: 0.0,
+            open_rays: 0.0,
         };
         let mut last = first;
         let mut it = 0;
@@ -876,10 +881,12 @@ impl<'a, B: Backend> Mapper<'a, B> {
             let mut c = 0.0f32;
             let mut wl = 0.0f32;
             let mut valid = 0u32;
+            let mut open = 0u32;
             for r in self.results.iter() {
                 c += r.color_loss;
                 wl += r.warp_loss;
                 valid += (r.warp_views >= self.cfg.warp.min_views) as u32;
+                open += (r.opacity < 0.5) as u32;
             }
             let info = IterInfo {
                 kind,
@@ -889,6 +896,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 color_loss: c,
                 warp_loss: wl,
                 warp_valid: valid as f32 * inv,
+                open_rays: open as f32 * inv,
             };
             if it == 0 {
                 first = info;

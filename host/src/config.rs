@@ -158,6 +158,9 @@ pub struct SceneSection {
     /// Camera-path bounds: depth along the corner rays (m) and margin (m).
     pub path_depth: f32,
     pub path_margin: f32,
+    /// Largest memory the map of the scene box may take (MB: parameters, Adam moments and the
+    /// CPU backend's gradient buffers); a larger map is an error before anything is allocated.
+    pub memory_budget_mb: f64,
 }
 
 /// Evaluation and outputs of `himap map`.
@@ -344,6 +347,7 @@ impl Config {
                 synthetic_margin: 0.1,
                 path_depth: 3.0,
                 path_margin: 0.5,
+                memory_budget_mb: 8192.0,
             },
             eval: EvalSection {
                 every: 1,

@@ -65,6 +65,8 @@ pub struct UpdateMetrics {
     pub warp_loss: f32,
     /// Fraction of the last iteration's pixels with a valid warp term.
     pub warp_valid: f32,
+    /// Share of the last iteration's sampled rays that left the scene box unabsorbed.
+    pub open_rays: f32,
     pub window_keyframes: u32,
     pub iters: u32,
     /// Optimisation time of the update (s), excluding evaluation.
@@ -87,6 +89,8 @@ pub struct MapSummary {
     pub mean_psnr: Option<f64>,
     pub mean_ssim: Option<f64>,
     pub mean_depth_l1_cm: Option<f64>,
+    /// Frames whose camera centre lay outside the scene box (warned at the first).
+    pub frames_outside_box: usize,
     /// The final map re-rendered at every `eval.final_every`-th frame of the whole sequence:
     /// how many frames, and their average PSNR, SSIM, Depth L1 (cm).
     pub final_frames: usize,
@@ -353,13 +357,13 @@ fn mean(v: impl Iterator<Item = f64>) -> Option<f64> {
 
 /// The columns of `metrics.csv`, one row per mapping update.
 const CSV_HEADER: &str = "frame,kind,psnr,ssim,depth_l1_cm,loss_first,loss,color_loss,warp_loss,\
-warp_valid,window_keyframes,iters,seconds";
+warp_valid,window_keyframes,iters,seconds,open_rays";
 
 /// Appends one update's row to `metrics.csv`.
 fn write_csv_row(csv: &mut impl Write, r: &UpdateMetrics) -> std::io::Result<()> {
     writeln!(
         csv,
-        "{},{},{:.4},{:.4},{},{:.6},{:.6},{:.6},{:.6},{:.4},{},{},{:.3}",
+        "{},{},{:.4},{:.4},{},{:.6},{:.6},{:.6},{:.6},{:.4},{},{},{:.3},{:.4}",
         r.frame,
         r.kind,
         r.psnr,
@@ -372,7 +376,8 @@ fn write_csv_row(csv: &mut impl Write, r: &UpdateMetrics) -> std::io::Result<()>
         r.warp_valid,
         r.window_keyframes,
         r.iters,
-        r.seconds
+        r.seconds,
+        r.open_rays
     )
 }
 
@@ -433,7 +438,7 @@ impl PlainLog {
             self.updates += 1;
             eprintln!(
                 "[{:7.1} s] update {} ({}) at frame {}: PSNR {:.2} dB, SSIM {:.3}, Depth L1 {}, \
-                 {} iterations in {:.1} s",
+                 {} iterations in {:.1} s, {:.0} % of rays left the box unabsorbed",
                 self.start.elapsed().as_secs_f64(),
                 self.updates,
                 r.kind,
@@ -444,7 +449,8 @@ impl PlainLog {
                     .map(|d| format!("{d:.1} cm"))
                     .unwrap_or_else(|| "-".into()),
                 r.iters,
-                r.seconds
+                r.seconds,
+                100.0 * r.open_rays
             );
         }
     }
@@ -496,6 +502,7 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         }
         c
     };
+    check_map_memory(cfg, aabb, box_src, opts.threads, opts.progress)?;
     let data = initial_data(cfg, aabb, Some(center))?;
     let store = ImageStore {
         width: k.width,
@@ -532,6 +539,60 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     let backend =
         ParallelCpuBackend::new(data, cfg.adam_config(), opts.threads)?.with_images(store);
     map_with(opts, ds.as_ref(), ctx, backend)
+}
+
+/// Bytes the map of `aabb` takes on the CPU backend with `threads` workers: parameters and
+/// Adam moments (3 x f32), and the gradient buffers (one i64 set per worker and the sum).
+pub fn map_bytes(cfg: &Config, aabb: Aabb, threads: usize) -> anyhow::Result<(usize, u64, u64)> {
+    let layout =
+        ModelLayout::new(&cfg.model_config(aabb)?).map_err(|e| anyhow::anyhow!("model: {e}"))?;
+    let workers = if threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        threads
+    };
+    let p = layout.param_count();
+    Ok((p, p as u64 * 12, p as u64 * 8 * (workers as u64 + 1)))
+}
+
+/// Prints the map's memory for the box before anything is allocated, and refuses a map over
+/// `scene.memory_budget_mb` with the settings that change it.
+fn check_map_memory(
+    cfg: &Config,
+    aabb: Aabb,
+    box_src: &str,
+    threads: usize,
+    print: bool,
+) -> anyhow::Result<()> {
+    let (p, state, grads) = map_bytes(cfg, aabb, threads)?;
+    let mb = |b: u64| b as f64 / 1e6;
+    let total = mb(state + grads);
+    let e = aabb.extent();
+    if print {
+        eprintln!(
+            "map: {p} parameters over the {:.2} x {:.2} x {:.2} m scene box ({box_src}): {:.0} MB \
+             (parameters and Adam moments {:.0} MB, gradient buffers {:.0} MB)",
+            e[0],
+            e[1],
+            e[2],
+            total,
+            mb(state),
+            mb(grads)
+        );
+    }
+    if total > cfg.scene.memory_budget_mb {
+        bail!(
+            "the map of the {:.2} x {:.2} x {:.2} m scene box ({box_src}) needs {total:.0} MB, over \
+             scene.memory_budget_mb = {:.0}: give a smaller box (scene.min, scene.max), coarser \
+             grids (model.geometry.cell_sizes, model.appearance.cell_sizes) or fewer channels, \
+             or raise scene.memory_budget_mb",
+            e[0],
+            e[1],
+            e[2],
+            cfg.scene.memory_budget_mb
+        );
+    }
+    Ok(())
 }
 
 /// What [`run_map`] computed before choosing the backend.
@@ -669,6 +730,7 @@ where
             color_loss: report.last.color_loss,
             warp_loss: report.last.warp_loss,
             warp_valid: report.last.warp_valid,
+            open_rays: report.last.open_rays,
             window_keyframes: report.window_keyframes,
             iters: report.iters,
             seconds,
@@ -682,8 +744,33 @@ where
         Ok(())
     };
 
+    let mut outside_box = 0usize;
     for i in 0..n {
         let frame = ds.frame(i)?;
+        let o = frame.pose.origin();
+        if (0..3).any(|a| !(o[a] >= aabb.min[a] && o[a] <= aabb.max[a])) {
+            if outside_box == 0 {
+                pb.suspend(|| {
+                    eprintln!(
+                        "warning: frame {}: the camera ({:.2}, {:.2}, {:.2}) is outside the scene \
+                         box ({box_src}) [{:.2}, {:.2}, {:.2}]..[{:.2}, {:.2}, {:.2}]; the map cannot \
+                         hold what lies beyond the box: give a box that contains the path \
+                         (scene.min, scene.max)",
+                        frame.index,
+                        o[0],
+                        o[1],
+                        o[2],
+                        aabb.min[0],
+                        aabb.min[1],
+                        aabb.min[2],
+                        aabb.max[0],
+                        aabb.max[1],
+                        aabb.max[2]
+                    )
+                });
+            }
+            outside_box += 1;
+        }
         let rgba = pack_image(&frame.rgb);
         let t0 = Instant::now();
         let lp = last_psnr;
@@ -822,6 +909,7 @@ where
         mean_psnr: mean(rows.iter().map(|r| r.psnr)),
         mean_ssim: mean(rows.iter().map(|r| r.ssim)),
         mean_depth_l1_cm: mean(rows.iter().filter_map(|r| r.depth_l1_cm)),
+        frames_outside_box: outside_box,
         final_frames: fin.frames,
         final_psnr: fin.psnr,
         final_ssim: fin.ssim,

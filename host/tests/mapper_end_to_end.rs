@@ -194,3 +194,84 @@ fn killed_run_keeps_its_metrics_rows_and_logs_plain_lines() {
     assert!(rows[1].starts_with("14,init,"), "{}", rows[1]);
     assert!(!out.join("summary.json").exists());
 }
+
+fn tiny_room(dir: &std::path::Path) -> std::path::PathBuf {
+    let data = dir.join("room");
+    write_synthetic(
+        &data,
+        &SynthOptions {
+            frames: 20,
+            width: 64,
+            height: 48,
+            seed: 1,
+        },
+    )
+    .unwrap();
+    data
+}
+
+fn options(data: std::path::PathBuf, out: std::path::PathBuf, config: Config) -> MapOptions {
+    MapOptions {
+        dataset: data,
+        out,
+        config,
+        start: 0,
+        end: None,
+        stride: 1,
+        resize: None,
+        threads: 2,
+        backend: "cpu".into(),
+        progress: false,
+    }
+}
+
+/// A box whose map exceeds the memory budget is refused before anything is allocated or
+/// written, with the settings to change; the estimate is what the backend allocates.
+#[test]
+fn map_over_the_memory_budget_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_room(dir.path());
+    let mut cfg = tiny_config();
+    cfg.scene.min = Some([-20.0, -20.0, -5.0]);
+    cfg.scene.max = Some([20.0, 20.0, 5.0]);
+    cfg.scene.memory_budget_mb = 100.0;
+    let out = dir.path().join("out");
+    let err = run_map(&options(data, out.clone(), cfg.clone())).unwrap_err();
+    let msg = format!("{err:#}");
+    assert!(msg.contains("scene.memory_budget_mb = 100"), "{msg}");
+    assert!(
+        msg.contains("scene.min") && msg.contains("cell_sizes"),
+        "{msg}"
+    );
+    assert!(!out.join("metrics.csv").exists());
+    let aabb = himap_core::Aabb::new([-20.0, -20.0, -5.0], [20.0, 20.0, 5.0]);
+    let (params, state, grads) = himap::mapper_cli::map_bytes(&cfg, aabb, 2).unwrap();
+    assert_eq!(state, params as u64 * 12);
+    assert_eq!(grads, params as u64 * 8 * 3);
+    assert!((state + grads) as f64 / 1e6 > 100.0);
+}
+
+/// Cameras outside the configured box are counted (and warned about on stderr).
+#[test]
+fn cameras_outside_the_box_are_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_room(dir.path());
+    let mut cfg = tiny_config();
+    // A box in a far corner of the room, away from the camera path.
+    cfg.scene.min = Some([50.0, 50.0, 50.0]);
+    cfg.scene.max = Some([51.0, 51.0, 51.0]);
+    cfg.eval.final_every = 0;
+    let s = run_map(&options(data, dir.path().join("out"), cfg)).unwrap();
+    assert_eq!(s.frames_outside_box, 20);
+    assert_eq!(s.scene_box_source, "config");
+    assert_eq!(s.final_frames, 0);
+    let csv = std::fs::read_to_string(dir.path().join("out/metrics.csv")).unwrap();
+    let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    let col = header.iter().position(|&h| h == "open_rays").unwrap();
+    for row in csv.lines().skip(1) {
+        let v: f64 = row.split(',').nth(col).unwrap().parse().unwrap();
+        // Rays from cameras far away from a small box hardly ever cross it: (almost) all
+        // leave it unabsorbed.
+        assert!((0.9..=1.0).contains(&v), "{row}");
+    }
+}
