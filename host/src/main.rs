@@ -241,7 +241,40 @@ fn parse_frames(s: &str) -> anyhow::Result<(usize, Option<usize>, usize)> {
     Ok((start, end, stride))
 }
 
-fn main() -> anyhow::Result<()> {
+/// Exit codes (documented in the README): 0 success, 1 a bad input or a failed run, 2 a usage
+/// error (clap's), 3 a GPU device failure.
+const EXIT_FAILURE: u8 = 1;
+const EXIT_DEVICE: u8 = 3;
+
+/// Prints a user-facing error as its cause chain, one line per cause, and no backtrace (even
+/// with `RUST_BACKTRACE=1`: errors are values here; real bugs panic, and panics keep Rust's
+/// backtrace), then exits with the code of [`exit_code`].
+fn main() -> std::process::ExitCode {
+    match run() {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            for cause in e.chain().skip(1) {
+                eprintln!("  caused by: {cause}");
+            }
+            std::process::ExitCode::from(exit_code(&e))
+        }
+    }
+}
+
+/// [`EXIT_DEVICE`] when a Vulkan device error is anywhere in the chain, else [`EXIT_FAILURE`].
+fn exit_code(e: &anyhow::Error) -> u8 {
+    let device = e
+        .chain()
+        .any(|c| c.downcast_ref::<himap_vulkan::VulkanError>().is_some());
+    if device {
+        EXIT_DEVICE
+    } else {
+        EXIT_FAILURE
+    }
+}
+
+fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Map {

@@ -531,7 +531,7 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
                 }
             }
             Err(e) => {
-                return Err(anyhow::anyhow!("{e}"))
+                return Err(anyhow::Error::new(e))
                     .context("starting the Vulkan backend (--backend cpu runs without a GPU)")
             }
         }
