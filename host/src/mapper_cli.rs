@@ -689,30 +689,14 @@ where
         let eval = cfg.eval.every > 0 && u.is_multiple_of(cfg.eval.every as usize);
         let (mut psnr, mut ssim, mut dl1) = (f64::NAN, f64::NAN, None);
         if eval {
-            let out = render_view(mapper.backend_mut(), &ek, &frame.pose)?;
-            let input = frame.rgb.resized(ek.width, ek.height);
-            let rendered: Vec<f32> = out.iter().flat_map(|r| r.color).collect();
-            psnr = crate::metrics::psnr(&rendered, &input.data);
-            ssim = crate::metrics::ssim(
-                &rendered,
-                &input.data,
-                ek.width as usize,
-                ek.height as usize,
-            );
-            let gt = frame
-                .depth
-                .as_ref()
-                .map(|d| d.resized(ek.width, ek.height).data);
-            if let Some(g) = &gt {
-                let depth: Vec<f32> = out.iter().map(|r| r.depth).collect();
-                dl1 = crate::metrics::depth_l1_cm(&depth, g);
-            }
+            let v = evaluate_view(mapper.backend_mut(), &ek, frame)?;
+            (psnr, ssim, dl1) = (v.psnr, v.ssim, v.depth_l1_cm);
             if u.is_multiple_of(render_every) {
                 let p = opts
                     .out
                     .join("renders")
                     .join(format!("frame{:06}.png", frame.index));
-                write_render(&p, &input, &out, gt.as_deref())?;
+                write_render(&p, &v.input, &v.out, v.gt_depth.as_deref())?;
             }
             *last_psnr = psnr;
         }
@@ -933,6 +917,53 @@ where
     Ok(summary)
 }
 
+/// A frame's view rendered from the map at `ek` and compared with the frame.
+struct ViewEval {
+    out: Vec<RayResult>,
+    input: crate::dataset::RgbImage,
+    gt_depth: Option<Vec<f32>>,
+    psnr: f64,
+    ssim: f64,
+    depth_l1_cm: Option<f64>,
+}
+
+/// Renders `frame`'s view at `ek` and computes PSNR, SSIM and (with a depth) Depth L1.
+fn evaluate_view<B: Backend>(
+    backend: &mut B,
+    ek: &Intrinsics,
+    frame: &crate::dataset::Frame,
+) -> anyhow::Result<ViewEval>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let out = render_view(backend, ek, &frame.pose)?;
+    let input = frame.rgb.resized(ek.width, ek.height);
+    let rendered: Vec<f32> = out.iter().flat_map(|r| r.color).collect();
+    let psnr = crate::metrics::psnr(&rendered, &input.data);
+    let ssim = crate::metrics::ssim(
+        &rendered,
+        &input.data,
+        ek.width as usize,
+        ek.height as usize,
+    );
+    let gt_depth = frame
+        .depth
+        .as_ref()
+        .map(|d| d.resized(ek.width, ek.height).data);
+    let depth_l1_cm = gt_depth.as_ref().and_then(|g| {
+        let depth: Vec<f32> = out.iter().map(|r| r.depth).collect();
+        crate::metrics::depth_l1_cm(&depth, g)
+    });
+    Ok(ViewEval {
+        out,
+        input,
+        gt_depth,
+        psnr,
+        ssim,
+        depth_l1_cm,
+    })
+}
+
 /// Averages of the final map re-rendered over the sequence.
 struct FinalEval {
     frames: usize,
@@ -955,24 +986,10 @@ where
     let (mut psnr, mut ssim, mut dl1) = (Vec::new(), Vec::new(), Vec::new());
     if every > 0 {
         for i in (0..ds.len()).step_by(every) {
-            let frame = ds.frame(i)?;
-            let out = render_view(backend, ek, &frame.pose)?;
-            let input = frame.rgb.resized(ek.width, ek.height);
-            let rendered: Vec<f32> = out.iter().flat_map(|r| r.color).collect();
-            psnr.push(crate::metrics::psnr(&rendered, &input.data));
-            ssim.push(crate::metrics::ssim(
-                &rendered,
-                &input.data,
-                ek.width as usize,
-                ek.height as usize,
-            ));
-            if let Some(d) = &frame.depth {
-                let depth: Vec<f32> = out.iter().map(|r| r.depth).collect();
-                dl1.extend(crate::metrics::depth_l1_cm(
-                    &depth,
-                    &d.resized(ek.width, ek.height).data,
-                ));
-            }
+            let v = evaluate_view(backend, ek, &ds.frame(i)?)?;
+            psnr.push(v.psnr);
+            ssim.push(v.ssim);
+            dl1.extend(v.depth_l1_cm);
         }
     }
     Ok(FinalEval {

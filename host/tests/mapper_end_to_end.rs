@@ -34,31 +34,9 @@ fn tiny_config() -> Config {
 #[test]
 fn map_writes_all_outputs_and_the_loss_goes_down() {
     let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("room");
-    write_synthetic(
-        &data,
-        &SynthOptions {
-            frames: 20,
-            width: 64,
-            height: 48,
-            seed: 1,
-        },
-    )
-    .unwrap();
+    let data = tiny_room(dir.path());
     let out = dir.path().join("out");
-    let opts = MapOptions {
-        dataset: data,
-        out: out.clone(),
-        config: tiny_config(),
-        start: 0,
-        end: None,
-        stride: 1,
-        resize: None,
-        threads: 2,
-        backend: "cpu".into(),
-        progress: false,
-    };
-    let s = run_map(&opts).unwrap();
+    let s = run_map(&options(data, out.clone(), tiny_config())).unwrap();
     // init at frame 14, one online update at 19
     assert_eq!(s.updates, 2);
     assert_eq!(s.iterations, 40 + 3);
