@@ -259,7 +259,8 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
             Ok((name.clone(), TensorView::new(*dt, shape.clone(), bytes)?))
         })
         .collect::<Result<_, safetensors::SafeTensorError>>()?;
-    safetensors::serialize_to_file(views, Some(meta), out)
-        .with_context(|| format!("writing {}", out.display()))?;
+    let bytes = safetensors::serialize(views, Some(meta))
+        .with_context(|| format!("serialising {}", out.display()))?;
+    crate::atomic::write_bytes_atomic(out, &bytes)?;
     Ok(stats.loss)
 }

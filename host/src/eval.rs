@@ -624,7 +624,7 @@ pub fn run_eval_cli(
     let report = eval_report(mesh, gt, opts)?;
     if let Some(out) = json {
         let text = serde_json::to_string_pretty(&report)?;
-        std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+        crate::atomic::write_bytes_atomic(out, text.as_bytes())?;
     }
     Ok(report)
 }

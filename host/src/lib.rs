@@ -7,6 +7,8 @@ pub mod mesh;
 pub mod metrics;
 pub mod synth;
 
+pub mod atomic;
+
 pub mod backend;
 pub mod bench;
 pub mod config;

@@ -233,9 +233,9 @@ pub fn save_map(path: &Path, config: &Config, data: &ModelData) -> anyhow::Resul
         serde_json::to_string(&[aabb.min, aabb.max])?,
     );
     meta.insert("adam_t".to_string(), data.t.to_string());
-    safetensors::serialize_to_file(views, Some(meta), path)
-        .with_context(|| format!("writing {}", path.display()))?;
-    Ok(())
+    let bytes = safetensors::serialize(views, Some(meta))
+        .with_context(|| format!("serialising {}", path.display()))?;
+    crate::atomic::write_bytes_atomic(path, &bytes)
 }
 
 /// Reads a map written by [`save_map`]: its configuration and model data.
@@ -334,14 +334,17 @@ fn write_render(
             }
         }
     }
-    image::save_buffer(
-        path,
-        &img,
-        (w * panels) as u32,
-        h as u32,
-        image::ExtendedColorType::Rgb8,
-    )
-    .with_context(|| format!("writing {}", path.display()))
+    let mut png = Vec::new();
+    use image::ImageEncoder;
+    image::codecs::png::PngEncoder::new(&mut png)
+        .write_image(
+            &img,
+            (w * panels) as u32,
+            h as u32,
+            image::ExtendedColorType::Rgb8,
+        )
+        .with_context(|| format!("encoding {}", path.display()))?;
+    crate::atomic::write_bytes_atomic(path, &png)
 }
 
 fn mean(v: impl Iterator<Item = f64>) -> Option<f64> {
@@ -359,8 +362,19 @@ fn mean(v: impl Iterator<Item = f64>) -> Option<f64> {
 const CSV_HEADER: &str = "frame,kind,psnr,ssim,depth_l1_cm,loss_first,loss,color_loss,warp_loss,\
 warp_valid,window_keyframes,iters,seconds,open_rays";
 
+/// Writes `metrics.csv`: the header and every row so far, atomically ([`crate::atomic`]).
+fn write_metrics(path: &Path, rows: &[UpdateMetrics]) -> anyhow::Result<()> {
+    crate::atomic::write_atomic(path, |w| {
+        writeln!(w, "{CSV_HEADER}")?;
+        for r in rows {
+            write_csv_row(w, r)?;
+        }
+        Ok(())
+    })
+}
+
 /// Appends one update's row to `metrics.csv`.
-fn write_csv_row(csv: &mut impl Write, r: &UpdateMetrics) -> std::io::Result<()> {
+fn write_csv_row(csv: &mut (impl Write + ?Sized), r: &UpdateMetrics) -> std::io::Result<()> {
     writeln!(
         csv,
         "{},{},{:.4},{:.4},{},{:.6},{:.6},{:.6},{:.6},{:.4},{},{},{:.3},{:.4}",
@@ -646,15 +660,10 @@ where
     };
     let render_every = (expected_updates / cfg.eval.renders.max(1) as usize).max(1);
 
-    // metrics.csv: the header now, one flushed row per update, so a run killed halfway keeps
-    // what it measured.
+    // metrics.csv: the header now, then rewritten whole (atomically) after every update, so a
+    // run killed halfway keeps what it measured.
     let csv_path = opts.out.join("metrics.csv");
-    let mut csv = std::io::BufWriter::new(
-        std::fs::File::create(&csv_path)
-            .with_context(|| format!("writing {}", csv_path.display()))?,
-    );
-    writeln!(csv, "{CSV_HEADER}")?;
-    csv.flush()?;
+    write_metrics(&csv_path, &[])?;
     // Without a terminal (a log file, a service) the progress bar draws nothing: plain lines
     // every few seconds instead.
     let plain = opts.progress && !std::io::stderr().is_terminal();
@@ -682,8 +691,7 @@ where
                   frame: &crate::dataset::Frame,
                   seconds: f64,
                   rows: &mut Vec<UpdateMetrics>,
-                  last_psnr: &mut f64,
-                  csv: &mut std::io::BufWriter<std::fs::File>|
+                  last_psnr: &mut f64|
      -> anyhow::Result<()> {
         let u = rows.len();
         let eval = cfg.eval.every > 0 && u.is_multiple_of(cfg.eval.every as usize);
@@ -719,10 +727,8 @@ where
             iters: report.iters,
             seconds,
         });
+        write_metrics(&csv_path, rows)?;
         if let Some(r) = rows.last() {
-            write_csv_row(csv, r)?;
-            csv.flush()
-                .with_context(|| format!("writing {}", csv_path.display()))?;
             log.borrow_mut().update(r);
         }
         Ok(())
@@ -784,15 +790,7 @@ where
         let dt = t0.elapsed().as_secs_f64();
         if let Some(r) = rep {
             mapping_s += dt;
-            handle(
-                &mut mapper,
-                r,
-                &frame,
-                dt,
-                &mut rows,
-                &mut last_psnr,
-                &mut csv,
-            )?;
+            handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
         }
         pb.inc(1);
         last_frame = Some(frame);
@@ -805,21 +803,12 @@ where
         {
             let dt = t0.elapsed().as_secs_f64();
             mapping_s += dt;
-            handle(
-                &mut mapper,
-                r,
-                &frame,
-                dt,
-                &mut rows,
-                &mut last_psnr,
-                &mut csv,
-            )?;
+            handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
         }
     }
     pb.finish_and_clear();
     let iterations = mapper.iterations();
 
-    drop(csv);
     log.borrow_mut().done(rows.len(), mapping_s);
 
     let mut backend = mapper.into_backend();
@@ -912,8 +901,7 @@ where
         config: cfg.clone(),
     };
     let sp = opts.out.join("summary.json");
-    std::fs::write(&sp, serde_json::to_string_pretty(&summary)?)
-        .with_context(|| format!("writing {}", sp.display()))?;
+    crate::atomic::write_bytes_atomic(&sp, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     Ok(summary)
 }
 

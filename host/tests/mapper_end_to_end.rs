@@ -253,3 +253,107 @@ fn cameras_outside_the_box_are_counted() {
         assert!((0.9..=1.0).contains(&v), "{row}");
     }
 }
+
+/// Every output appears whole or not at all: runs killed at moments spread over a whole run
+/// (during mapping, evaluation and the saves) leave, for each file of a previous complete run
+/// in the same folder, that file or a whole new one. The runs are deterministic, so a whole
+/// new map, mesh or render equals the previous one byte for byte; the summary and the
+/// metrics (which hold timings) must parse.
+#[test]
+fn outputs_are_whole_after_a_kill_at_any_moment() {
+    use std::process::{Command, Stdio};
+    use std::time::Instant;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_room(dir.path());
+    let cfg_path = dir.path().join("tiny.toml");
+    std::fs::write(&cfg_path, tiny_config().to_toml()).unwrap();
+    let out = dir.path().join("out");
+    let command = || {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_himap"));
+        c.arg("map")
+            .arg(&data)
+            .arg("--out")
+            .arg(&out)
+            .arg("--config")
+            .arg(&cfg_path)
+            .args(["--backend", "cpu", "--threads", "2"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null());
+        c
+    };
+    let t0 = Instant::now();
+    assert!(command().status().unwrap().success());
+    let full = t0.elapsed();
+    let names = |d: &std::path::Path| -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| !n.starts_with(".himap-"))
+            .collect();
+        v.sort();
+        v
+    };
+    let files = names(&out);
+    let renders = names(&out.join("renders"));
+    let bytes = |p: &std::path::Path| std::fs::read(p).unwrap();
+    // The map is compared by content: its metadata is a hash map, serialised in any order.
+    let map_content = |b: &[u8]| {
+        let (_, meta) = safetensors::SafeTensors::read_metadata(b).unwrap();
+        let t = safetensors::SafeTensors::deserialize(b).unwrap();
+        let mut tensors: Vec<(String, Vec<u8>)> = t
+            .tensors()
+            .into_iter()
+            .map(|(n, v)| (n, v.data().to_vec()))
+            .collect();
+        tensors.sort();
+        let mut m: Vec<(String, String)> = meta
+            .metadata()
+            .clone()
+            .unwrap_or_default()
+            .into_iter()
+            .collect();
+        m.sort();
+        (tensors, m)
+    };
+    let map_ref = map_content(&bytes(&out.join("map.safetensors")));
+    let reference: Vec<(std::path::PathBuf, Vec<u8>)> = ["mesh.ply"]
+        .iter()
+        .map(|f| out.join(f))
+        .chain(renders.iter().map(|r| out.join("renders").join(r)))
+        .map(|p| (p.clone(), bytes(&p)))
+        .collect();
+    let csv_rows = std::fs::read_to_string(out.join("metrics.csv"))
+        .unwrap()
+        .lines()
+        .count();
+    for k in 0..16 {
+        let mut child = command().spawn().unwrap();
+        std::thread::sleep(full.mul_f64(0.1 + 0.06 * k as f64));
+        let _ = child.kill();
+        let _ = child.wait();
+        assert_eq!(names(&out), files, "kill {k}");
+        for (p, want) in &reference {
+            assert!(
+                bytes(p) == *want,
+                "kill {k}: {} is not the previous file",
+                p.display()
+            );
+        }
+        assert!(
+            map_content(&bytes(&out.join("map.safetensors"))) == map_ref,
+            "kill {k}: map.safetensors is not whole"
+        );
+        let s: serde_json::Value =
+            serde_json::from_slice(&bytes(&out.join("summary.json"))).unwrap();
+        assert!(s["mesh_faces"].as_u64().unwrap() > 0, "kill {k}");
+        let csv = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
+        let header = csv.lines().next().unwrap();
+        assert!(header.starts_with("frame,kind,"), "kill {k}");
+        let width = header.split(',').count();
+        assert!(csv.lines().count() <= csv_rows, "kill {k}");
+        for row in csv.lines().skip(1) {
+            assert_eq!(row.split(',').count(), width, "kill {k}: {row}");
+        }
+        assert!(csv.ends_with('\n'));
+    }
+}

@@ -12,7 +12,7 @@
 //! properties are read and ignored. A point cloud (no `face` element) reads as a mesh without
 //! faces.
 
-use std::io::{BufRead, BufReader, BufWriter, Read, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
@@ -20,19 +20,16 @@ use anyhow::{anyhow, bail, Context, Result};
 use super::Mesh;
 
 /// Writes `mesh` as a binary little-endian PLY file.
+/// The file appears whole or not at all ([`crate::atomic`]).
 pub fn write_ply(mesh: &Mesh, path: &Path) -> Result<()> {
-    let f = std::fs::File::create(path)
-        .with_context(|| format!("creating PLY file {}", path.display()))?;
-    let mut w = BufWriter::new(f);
-    write_ply_to(mesh, &mut w)
-        .and_then(|_| w.flush().map_err(Into::into))
+    crate::atomic::write_atomic(path, |w| write_ply_to(mesh, w))
         .with_context(|| format!("writing PLY file {}", path.display()))
 }
 
 /// Writes `mesh` as binary little-endian PLY to `w`.
 ///
 /// Fails if the colour count differs from the vertex count or a face index is out of range.
-pub fn write_ply_to<W: Write>(mesh: &Mesh, w: &mut W) -> Result<()> {
+pub fn write_ply_to<W: Write + ?Sized>(mesh: &Mesh, w: &mut W) -> Result<()> {
     let nv = mesh.vertices.len();
     if let Some(c) = &mesh.colors {
         if c.len() != nv {
