@@ -45,6 +45,10 @@ enum Command {
         /// Worker threads (0 = all cores).
         #[arg(long, default_value_t = 0)]
         threads: usize,
+        /// Skip the preflight (every frame's files and image headers are checked before the
+        /// first iteration, so a broken frame fails in the first second, not at its turn).
+        #[arg(long)]
+        no_preflight: bool,
         /// Print the effective configuration (TOML) and exit.
         #[arg(long)]
         print_config: bool,
@@ -287,6 +291,7 @@ fn run() -> anyhow::Result<()> {
             resize,
             threads,
             print_config,
+            no_preflight,
         } => {
             let base = himap::config::Config::preset(&preset)?;
             let cfg = match &config {
@@ -314,6 +319,7 @@ fn run() -> anyhow::Result<()> {
                 threads,
                 backend,
                 progress: true,
+                preflight: !no_preflight,
             };
             let s = himap::mapper_cli::run_map(&opts)?;
             println!("{}", himap::mapper_cli::summary_table(&s));

@@ -47,6 +47,8 @@ pub struct MapOptions {
     pub backend: String,
     /// Show a progress bar.
     pub progress: bool,
+    /// Check every frame's files and image headers before the first iteration.
+    pub preflight: bool,
 }
 
 /// One row of `metrics.csv`.
@@ -496,6 +498,20 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         .with_context(|| format!("opening dataset {}", opts.dataset.display()))?;
     let k = ds.intrinsics();
     let n = ds.len();
+    if opts.preflight {
+        let t0 = Instant::now();
+        for i in 0..n {
+            ds.preflight(i).with_context(|| {
+                format!("preflight of frame {i} of {n} (--no-preflight skips this check)")
+            })?;
+        }
+        if opts.progress {
+            eprintln!(
+                "preflight: {n} frames' files and image headers checked in {:.1} s",
+                t0.elapsed().as_secs_f64()
+            );
+        }
+    }
     let poses: Vec<Pose> = (0..n).map(|i| ds.pose(i)).collect();
     let (aabb, box_src) = cfg.scene_bounds(&opts.dataset, &k, &poses)?;
     std::fs::create_dir_all(opts.out.join("renders"))
@@ -1182,6 +1198,7 @@ pub fn run_demo(
         threads,
         backend: backend.to_string(),
         progress,
+        preflight: true,
     };
     let s = run_map(&opts)?;
     Ok((s, opts.out))

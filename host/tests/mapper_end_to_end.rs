@@ -200,6 +200,7 @@ fn options(data: std::path::PathBuf, out: std::path::PathBuf, config: Config) ->
         threads: 2,
         backend: "cpu".into(),
         progress: false,
+        preflight: true,
     }
 }
 
@@ -356,4 +357,31 @@ fn outputs_are_whole_after_a_kill_at_any_moment() {
         }
         assert!(csv.ends_with('\n'));
     }
+}
+
+/// A broken frame late in the sequence fails the run before the first iteration (preflight),
+/// naming the frame and the file; with the preflight off the run only fails at that frame.
+#[test]
+fn preflight_finds_a_broken_late_frame_before_mapping() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_room(dir.path());
+    let broken = data.join("results").join("frame000018.png");
+    // Cut inside the PNG header: the image's size cannot be read.
+    let bytes = std::fs::read(&broken).unwrap();
+    std::fs::write(&broken, &bytes[..12]).unwrap();
+    let out = dir.path().join("out");
+    let err = run_map(&options(data.clone(), out.clone(), tiny_config())).unwrap_err();
+    let msg = format!("{err:#}");
+    assert!(msg.contains("preflight of frame 18 of 20"), "{msg}");
+    assert!(msg.contains("frame000018.png"), "{msg}");
+    assert!(!out.join("metrics.csv").exists(), "the run started mapping");
+    // Without the preflight the run maps frames 0..17 (the initialisation included) first.
+    let mut opts = options(data, out.clone(), tiny_config());
+    opts.preflight = false;
+    let err = run_map(&opts).unwrap_err();
+    let msg = format!("{err:#}");
+    assert!(!msg.contains("preflight"), "{msg}");
+    assert!(msg.contains("frame000018.png"), "{msg}");
+    let csv = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
+    assert!(csv.lines().nth(1).unwrap().starts_with("14,init,"), "{csv}");
 }

@@ -678,6 +678,7 @@ fn map_command_on_vulkan_equals_cpu() {
             threads: 2,
             backend: backend.into(),
             progress: false,
+            preflight: true,
         };
         let s = himap::mapper_cli::run_map(&opts).unwrap();
         let csv = std::fs::read_to_string(opts.out.join("metrics.csv")).unwrap();

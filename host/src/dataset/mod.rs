@@ -229,6 +229,9 @@ pub trait Dataset: Send + Sync {
     fn name(&self) -> &str;
     /// Whether frames carry depth.
     fn has_depth(&self) -> bool;
+    /// Checks selected frame `i` without decoding it: its files exist, their headers decode
+    /// and give the expected size (`himap map`'s preflight).
+    fn preflight(&self, i: usize) -> Result<(), DatasetError>;
 }
 
 /// Which frames to read and how to size them.

@@ -360,6 +360,21 @@ impl Dataset for ReplicaDataset {
         })
     }
 
+    fn preflight(&self, i: usize) -> Result<(), DatasetError> {
+        let Some(&src) = self.sel.indices.get(i) else {
+            return Err(DatasetError::OutOfRange {
+                path: self.root.clone(),
+                index: i,
+                len: self.len(),
+            });
+        };
+        check_image_header(&self.frames[src], &self.sel.native)?;
+        if self.has_depth() {
+            check_image_header(&self.depths[src], &self.sel.native)?;
+        }
+        Ok(())
+    }
+
     fn name(&self) -> &str {
         &self.name
     }

@@ -440,6 +440,22 @@ impl Dataset for TumDataset {
         })
     }
 
+    fn preflight(&self, i: usize) -> Result<(), DatasetError> {
+        let Some(&src) = self.sel.indices.get(i) else {
+            return Err(DatasetError::OutOfRange {
+                path: self.root.clone(),
+                index: i,
+                len: self.len(),
+            });
+        };
+        let e = &self.entries[src];
+        check_image_header(&e.rgb, &self.sel.native)?;
+        if let Some(p) = &e.depth {
+            check_image_header(p, &self.sel.native)?;
+        }
+        Ok(())
+    }
+
     fn name(&self) -> &str {
         &self.name
     }
