@@ -397,6 +397,14 @@ fn write_csv_row(csv: &mut (impl Write + ?Sized), r: &UpdateMetrics) -> std::io:
     )
 }
 
+/// "init" or "map": the kind of an iteration in progress lines.
+fn kind_label(kind: UpdateKind) -> &'static str {
+    match kind {
+        UpdateKind::Init => "init",
+        UpdateKind::Online => "map",
+    }
+}
+
 /// Progress as plain lines on stderr, at most one every [`PlainLog::EVERY`] (plus one per
 /// mapping update and one at the end), for runs whose stderr is not a terminal.
 struct PlainLog {
@@ -436,11 +444,7 @@ impl PlainLog {
                 self.start.elapsed().as_secs_f64(),
                 frame + 1,
                 self.frames,
-                if info.kind == UpdateKind::Init {
-                    "init"
-                } else {
-                    "map"
-                },
+                kind_label(info.kind),
                 info.iter + 1,
                 info.iters,
                 info.loss
@@ -783,11 +787,7 @@ where
         let mut observe = |info: &IterInfo| {
             pb.set_message(format!(
                 "{} it {}/{} loss {:.4} (c {:.4} w {:.4}) PSNR {:.2}",
-                if info.kind == UpdateKind::Init {
-                    "init"
-                } else {
-                    "map"
-                },
+                kind_label(info.kind),
                 info.iter + 1,
                 info.iters,
                 info.loss,

@@ -116,7 +116,7 @@ fn saved_map_renders_bit_identically_after_loading() {
 #[test]
 fn killed_run_keeps_its_metrics_rows_and_logs_plain_lines() {
     use std::io::{BufRead, BufReader};
-    use std::process::{Command, Stdio};
+    use std::process::Stdio;
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("room");
     write_synthetic(
@@ -135,15 +135,7 @@ fn killed_run_keeps_its_metrics_rows_and_logs_plain_lines() {
     let cfg_path = dir.path().join("tiny.toml");
     std::fs::write(&cfg_path, cfg.to_toml()).unwrap();
     let out = dir.path().join("out");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_himap"))
-        .arg("map")
-        .arg(&data)
-        .arg("--out")
-        .arg(&out)
-        .arg("--config")
-        .arg(&cfg_path)
-        .args(["--backend", "cpu", "--threads", "2"])
-        .stdout(Stdio::null())
+    let mut child = map_command(&data, &out, &cfg_path)
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
@@ -171,6 +163,24 @@ fn killed_run_keeps_its_metrics_rows_and_logs_plain_lines() {
     assert!(rows[0].starts_with("frame,kind,psnr"));
     assert!(rows[1].starts_with("14,init,"), "{}", rows[1]);
     assert!(!out.join("summary.json").exists());
+}
+
+/// `himap map DATA --out OUT --config CFG --backend cpu --threads 2`, stdout discarded.
+fn map_command(
+    data: &std::path::Path,
+    out: &std::path::Path,
+    cfg: &std::path::Path,
+) -> std::process::Command {
+    let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_himap"));
+    c.arg("map")
+        .arg(data)
+        .arg("--out")
+        .arg(out)
+        .arg("--config")
+        .arg(cfg)
+        .args(["--backend", "cpu", "--threads", "2"])
+        .stdout(std::process::Stdio::null());
+    c
 }
 
 fn tiny_room(dir: &std::path::Path) -> std::path::PathBuf {
@@ -262,7 +272,7 @@ fn cameras_outside_the_box_are_counted() {
 /// metrics (which hold timings) must parse.
 #[test]
 fn outputs_are_whole_after_a_kill_at_any_moment() {
-    use std::process::{Command, Stdio};
+    use std::process::Stdio;
     use std::time::Instant;
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_room(dir.path());
@@ -270,16 +280,8 @@ fn outputs_are_whole_after_a_kill_at_any_moment() {
     std::fs::write(&cfg_path, tiny_config().to_toml()).unwrap();
     let out = dir.path().join("out");
     let command = || {
-        let mut c = Command::new(env!("CARGO_BIN_EXE_himap"));
-        c.arg("map")
-            .arg(&data)
-            .arg("--out")
-            .arg(&out)
-            .arg("--config")
-            .arg(&cfg_path)
-            .args(["--backend", "cpu", "--threads", "2"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null());
+        let mut c = map_command(&data, &out, &cfg_path);
+        c.stderr(Stdio::null());
         c
     };
     let t0 = Instant::now();

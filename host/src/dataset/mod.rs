@@ -533,6 +533,18 @@ pub(crate) struct Selection {
 }
 
 impl Selection {
+    /// The source index of selected frame `i` of the dataset at `root`.
+    pub fn source(&self, root: &Path, i: usize) -> Result<usize, DatasetError> {
+        self.indices
+            .get(i)
+            .copied()
+            .ok_or_else(|| DatasetError::OutOfRange {
+                path: root.to_path_buf(),
+                index: i,
+                len: self.indices.len(),
+            })
+    }
+
     /// Validates the options against a sequence of `n` frames with camera `native`.
     pub fn new(
         root: &Path,

@@ -337,13 +337,7 @@ impl Dataset for ReplicaDataset {
     }
 
     fn frame(&self, i: usize) -> Result<Frame, DatasetError> {
-        let Some(&src) = self.sel.indices.get(i) else {
-            return Err(DatasetError::OutOfRange {
-                path: self.root.clone(),
-                index: i,
-                len: self.len(),
-            });
-        };
+        let src = self.sel.source(&self.root, i)?;
         let rgb = load_rgb(&self.frames[src], &self.sel.native)?;
         let depth = if self.has_depth() {
             let d = load_depth(&self.depths[src], self.depth_scale, &self.sel.native)?;
@@ -361,13 +355,7 @@ impl Dataset for ReplicaDataset {
     }
 
     fn preflight(&self, i: usize) -> Result<(), DatasetError> {
-        let Some(&src) = self.sel.indices.get(i) else {
-            return Err(DatasetError::OutOfRange {
-                path: self.root.clone(),
-                index: i,
-                len: self.len(),
-            });
-        };
+        let src = self.sel.source(&self.root, i)?;
         check_image_header(&self.frames[src], &self.sel.native)?;
         if self.has_depth() {
             check_image_header(&self.depths[src], &self.sel.native)?;

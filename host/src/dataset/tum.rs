@@ -411,13 +411,7 @@ impl Dataset for TumDataset {
     }
 
     fn frame(&self, i: usize) -> Result<Frame, DatasetError> {
-        let Some(&src) = self.sel.indices.get(i) else {
-            return Err(DatasetError::OutOfRange {
-                path: self.root.clone(),
-                index: i,
-                len: self.len(),
-            });
-        };
+        let src = self.sel.source(&self.root, i)?;
         let e = &self.entries[src];
         let mut rgb = load_rgb(&e.rgb, &self.sel.native)?;
         if let Some(map) = &self.undistort_map {
@@ -441,13 +435,7 @@ impl Dataset for TumDataset {
     }
 
     fn preflight(&self, i: usize) -> Result<(), DatasetError> {
-        let Some(&src) = self.sel.indices.get(i) else {
-            return Err(DatasetError::OutOfRange {
-                path: self.root.clone(),
-                index: i,
-                len: self.len(),
-            });
-        };
+        let src = self.sel.source(&self.root, i)?;
         let e = &self.entries[src];
         check_image_header(&e.rgb, &self.sel.native)?;
         if let Some(p) = &e.depth {
