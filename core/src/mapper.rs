@@ -117,6 +117,11 @@ pub struct MapperConfig {
     pub lambda_depth_prior: f32,
     pub depth_prior: f32,
     pub depth_prior_iters: u32,
+    /// After those iterations (online updates included): the same prior with this weight on
+    /// the pixels whose rendered depth is below `depth_prior_near` (m), so that a view
+    /// collapsed onto the camera in newly explored space gets a plausible start (0 = off).
+    pub lambda_depth_prior_online: f32,
+    pub depth_prior_near: f32,
 }
 
 impl MapperConfig {
@@ -146,6 +151,8 @@ impl MapperConfig {
             lambda_depth_prior: 1.0,
             depth_prior: 1.5,
             depth_prior_iters: 150,
+            lambda_depth_prior_online: 0.0,
+            depth_prior_near: 0.5,
         }
     }
 
@@ -862,9 +869,14 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 lambda_depth_prior: if init && it < self.cfg.depth_prior_iters {
                     self.cfg.lambda_depth_prior
                 } else {
-                    0.0
+                    self.cfg.lambda_depth_prior_online
                 },
                 depth_prior: self.cfg.depth_prior,
+                depth_prior_near: if init && it < self.cfg.depth_prior_iters {
+                    0.0
+                } else {
+                    self.cfg.depth_prior_near
+                },
             };
             let batch = MapBatch {
                 k: self.k,

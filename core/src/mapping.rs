@@ -112,6 +112,10 @@ pub struct MappingLoss {
     pub lambda_depth_prior: f32,
     /// Target depth of the prior (camera z, metres; DIM-SLAM uses 1.5).
     pub depth_prior: f32,
+    /// When > 0, the prior only acts on pixels whose rendered depth is below this (m): the
+    /// online guard for views that collapse onto the camera in space not explored yet (the
+    /// camera is in free space, so nothing is that close). 0 = every pixel.
+    pub depth_prior_near: f32,
 }
 
 /// What one sampled pixel produced.
@@ -211,7 +215,10 @@ pub fn pixel_loss<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         result.warp_views = w.valid_views;
         d_depth = kw * w.d_depth;
     }
-    if loss.lambda_depth_prior != 0.0 && n > 0 {
+    if loss.lambda_depth_prior != 0.0
+        && n > 0
+        && (loss.depth_prior_near <= 0.0 || out.depth < loss.depth_prior_near)
+    {
         let (v, dv) = crate::loss::smooth_l1(out.depth - loss.depth_prior, 0.1);
         let kp = loss.color_scale * loss.lambda_depth_prior;
         result.color_loss += kp * v;
@@ -312,5 +319,63 @@ mod tests {
         assert_eq!(imgs.texel(1, 1, 2), [51.0 * inv, 102.0 * inv, 255.0 * inv]);
         assert!((imgs.texel(1, 1, 2)[0] - 0.2).abs() < 1e-6);
         assert_eq!(imgs.texel(0, 1, 2), [0.0, 0.0, 0.0]);
+    }
+
+    /// The depth prior acts on every pixel without `depth_prior_near`, and with it only on the
+    /// pixels rendered closer than it: hand-computed smooth-L1 cotangents.
+    #[test]
+    fn depth_prior_near_gates_the_prior_by_the_rendered_depth() {
+        let (w, h) = (4u32, 3u32);
+        let px = std::vec![0u32; (w * h) as usize];
+        let imgs = WindowImages {
+            width: w,
+            height: h,
+            slots: [0u32; MAX_WINDOW],
+            pixels: &px[..],
+        };
+        let poses = [Pose::IDENTITY];
+        let window = WindowView {
+            k: Intrinsics {
+                width: w,
+                height: h,
+                fx: 2.0,
+                fy: 2.0,
+                cx: 1.5,
+                cy: 1.0,
+            },
+            poses: &poses[..],
+            images: &imgs,
+        };
+        let mut loss = MappingLoss {
+            lambda_color: 0.0,
+            lambda_warp: 0.0,
+            color_scale: 0.5,
+            warp_scale: 0.5,
+            color_to_geometry: true,
+            seed: 0,
+            warp: WarpConfig::dim_slam(),
+            lambda_depth_prior: 2.0,
+            depth_prior: 1.5,
+            depth_prior_near: 0.0,
+        };
+        let ray = Ray {
+            origin: [0.0; 3],
+            dir: [0.0, 0.0, 1.0],
+            target: [0.0; 3],
+            target_depth: 0.0,
+        };
+        let px0 = PixelSample::default();
+        let d_depth = |depth: f32, loss: &MappingLoss| {
+            let mut out = RayOutput::zeroed();
+            out.depth = depth;
+            pixel_loss(&window, px0, &ray, &out, 4, loss).2
+        };
+        // |D - 1.5| > 0.1: smooth L1's slope -1, times color_scale * lambda = 1
+        assert_eq!(d_depth(0.2, &loss), -1.0);
+        assert_eq!(d_depth(0.8, &loss), -1.0);
+        loss.depth_prior_near = 0.5;
+        assert_eq!(d_depth(0.2, &loss), -1.0);
+        assert_eq!(d_depth(0.8, &loss), 0.0);
+        assert_eq!(d_depth(3.0, &loss), 0.0);
     }
 }

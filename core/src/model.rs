@@ -75,6 +75,12 @@ pub struct ModelConfig {
     pub grid_init_std: f32,
     /// Initial bias of the SDF output (metres); a positive value starts the field as free space.
     pub sdf_bias_init: f32,
+    /// Farthest ray depth sampled (in units of the ray parameter `t`: metres of z-depth for
+    /// camera rays, whose direction has z = 1 in the camera frame); a ray's samples span
+    /// `[near, min(far, max_depth)]` of its box intersection. 0 = no limit (the box exit).
+    /// A large scene box (a building, the default box around the first camera) otherwise
+    /// spreads the samples over tens of metres.
+    pub max_depth: f32,
 }
 
 impl ModelConfig {
@@ -94,6 +100,7 @@ impl ModelConfig {
             beta_init: 10.0,
             grid_init_std: 0.01,
             sdf_bias_init: 0.0,
+            max_depth: 0.0,
         }
     }
 }
@@ -602,7 +609,11 @@ fn point_on_ray(ray: &Ray, t: f32) -> [f32; 3] {
 /// (`layout.config.samples`, at most `MAX_SAMPLES`; 0 when the ray misses the box).
 #[inline(always)]
 pub fn ray_span(layout: &ModelLayout, ray: &Ray) -> (f32, f32, usize) {
-    let (near, far, hit) = render::ray_aabb(ray.origin, ray.dir, &layout.config.aabb);
+    let (near, mut far, hit) = render::ray_aabb(ray.origin, ray.dir, &layout.config.aabb);
+    let limit = layout.config.max_depth;
+    if limit > 0.0 && far > limit {
+        far = limit;
+    }
     if !(hit && far > near) {
         return (near, far, 0);
     }
@@ -1174,6 +1185,7 @@ mod tests {
             beta_init: 5.0,
             grid_init_std: 0.2,
             sdf_bias_init: 0.2,
+            max_depth: 0.0,
         };
         ModelLayout::new(&cfg).unwrap()
     }

@@ -93,6 +93,17 @@ impl AdamHw {
     }
 }
 
+/// Per [`BLOCK`] of each group, whether any Adam moment in it is non-zero.
+fn live_blocks(data: &ModelData) -> [Vec<bool>; NUM_GROUPS] {
+    std::array::from_fn(|g| {
+        data.m[g]
+            .chunks(BLOCK)
+            .zip(data.v[g].chunks(BLOCK))
+            .map(|(m, v)| m.iter().chain(v).any(|&x| x != 0.0))
+            .collect()
+    })
+}
+
 /// Errors of the host CPU backend.
 #[derive(Debug, thiserror::Error)]
 pub enum CpuError {
@@ -182,13 +193,27 @@ pub struct ParallelCpuBackend {
     name: String,
     store: ImageStore,
     images: Vec<u32>,
+    /// Per [`BLOCK`] of each group: whether its Adam moments may be non-zero. A block whose
+    /// moments are all zero and which no worker touched this step has a zero gradient, and
+    /// Adam leaves it exactly as it is (`m = v = 0`, the parameter minus `0 / eps`), so the
+    /// sum and Adam pass skips it: same bits as the dense pass, at the cost of the blocks a
+    /// step reaches (a large scene box is mostly never seen).
+    live: [Vec<bool>; NUM_GROUPS],
+    /// `live` must be recomputed from the moments (after [`Self::data_mut`]).
+    live_stale: bool,
 }
+
+/// Parameters per block of the sum and Adam pass (and of the touched / live flags).
+const BLOCK: usize = 1024;
+const BLOCK_SHIFT: u32 = BLOCK.trailing_zeros();
 
 /// A pool thread's private state: its own fixed-point gradient buffers for every group (plain
 /// integer adds, no atomics; summed over the workers before Adam, which gives the same integers
 /// in any order), the ray cache, scratch and the stored decoder activations of a ray.
 struct Worker {
     grads: [Vec<i64>; NUM_GROUPS],
+    /// Per [`BLOCK`] of `grads`: whether this step added anything to it.
+    touched: [Vec<bool>; NUM_GROUPS],
     cache: Box<RayCache>,
     scratch: Box<SampleScratch>,
     tape_geometry: Vec<MlpScratch>,
@@ -199,6 +224,7 @@ impl Worker {
     fn new(lens: [usize; NUM_GROUPS]) -> Self {
         Self {
             grads: lens.map(|n| vec![0; n]),
+            touched: lens.map(|n| vec![false; n.div_ceil(BLOCK)]),
             cache: Box::new(RayCache::new()),
             scratch: Box::new(SampleScratch::new()),
             tape_geometry: vec![MlpScratch::new(); MAX_SAMPLES],
@@ -221,6 +247,7 @@ impl Worker {
         };
         let mut sink = WorkerSink {
             grads: &mut self.grads,
+            touched: &mut self.touched,
         };
         f(&mut self.cache, &mut self.scratch, &mut tape, &mut sink)
     }
@@ -230,21 +257,31 @@ impl Worker {
 /// buffers.
 struct WorkerSink<'a> {
     grads: &'a mut [Vec<i64>; NUM_GROUPS],
+    touched: &'a mut [Vec<bool>; NUM_GROUPS],
 }
 
 impl ModelGradSink for WorkerSink<'_> {
     #[inline(always)]
     fn add(&mut self, group: Group, i: usize, g: f32) {
-        if let Some(x) = self.grads[group as usize].get_mut(i) {
+        let gi = group as usize;
+        if let Some(x) = self.grads[gi].get_mut(i) {
             *x = x.wrapping_add(to_fixed_host(g));
+            self.touched[gi][i >> BLOCK_SHIFT] = true;
         }
     }
 
     #[inline(always)]
     fn add_scaled(&mut self, group: Group, offset: usize, g: f32, xs: &[f32; MAX_WIDTH], n: usize) {
         let n = n.min(MAX_WIDTH);
-        match self.grads[group as usize].get_mut(offset..offset + n) {
-            Some(dst) => add_scaled_row(dst, g, &xs[..n]),
+        let gi = group as usize;
+        match self.grads[gi].get_mut(offset..offset + n) {
+            Some(dst) if n > 0 => {
+                add_scaled_row(dst, g, &xs[..n]);
+                let t = &mut self.touched[gi];
+                t[offset >> BLOCK_SHIFT] = true;
+                t[(offset + n - 1) >> BLOCK_SHIFT] = true;
+            }
+            Some(_) => {}
             None => {
                 for (i, &x) in xs[..n].iter().enumerate() {
                     self.add(group, offset + i, g * x);
@@ -332,7 +369,10 @@ impl ParallelCpuBackend {
             })?;
         let n = pool.current_num_threads();
         let lens = data.layout.group_lens();
+        let live = live_blocks(&data);
         Ok(Self {
+            live,
+            live_stale: false,
             workers: (0..n).map(|_| Mutex::new(Worker::new(lens))).collect(),
             grads: lens.map(|n| vec![0; n]),
             data,
@@ -353,6 +393,7 @@ impl ParallelCpuBackend {
 
     /// Mutable access to the model data (loading a saved map; the gradients are untouched).
     pub fn data_mut(&mut self) -> &mut ModelData {
+        self.live_stale = true;
         &mut self.data
     }
 
@@ -485,6 +526,10 @@ impl ParallelCpuBackend {
     /// Sums the workers' gradients into `grads` (zeroing the workers' buffers for the next
     /// step) and runs Adam on every group, element-wise in parallel ([`adam_update_hw`]).
     fn apply_adam(&mut self) {
+        if self.live_stale {
+            self.live = live_blocks(&self.data);
+            self.live_stale = false;
+        }
         self.data.t += 1;
         let t = self.data.t;
         let ModelData { params, m, v, .. } = &mut self.data;
@@ -494,25 +539,35 @@ impl ParallelCpuBackend {
             .iter_mut()
             .map(|w| w.get_mut().unwrap_or_else(|e| e.into_inner()))
             .collect();
-        const BLOCK: usize = 8192;
         for g in 0..NUM_GROUPS {
             let s = AdamStep::new(&adam_cfg[g], t);
             let hw = AdamHw::new(&s);
+            let mut run: Vec<bool> = self.live[g].clone();
+            for w in workers.iter_mut() {
+                for (r, t) in run.iter_mut().zip(w.touched[g].iter_mut()) {
+                    *r |= std::mem::take(t);
+                }
+            }
             let mut parts: Vec<std::slice::ChunksMut<'_, i64>> = workers
                 .iter_mut()
                 .map(|w| w.grads[g].chunks_mut(BLOCK))
                 .collect();
-            // One work item per block: the parameters, moments, summed gradient and every
-            // worker's block of the same range.
+            // One work item per block that may change: the parameters, moments, summed
+            // gradient and every worker's block of the same range. Skipped blocks keep their
+            // (zero) sum and worker buffers.
             let mut items = Vec::with_capacity(params[g].len().div_ceil(BLOCK));
-            for (((p, m), v), sum) in params[g]
+            for (b, (((p, m), v), sum)) in params[g]
                 .chunks_mut(BLOCK)
                 .zip(m[g].chunks_mut(BLOCK))
                 .zip(v[g].chunks_mut(BLOCK))
                 .zip(self.grads[g].chunks_mut(BLOCK))
+                .enumerate()
             {
                 let blocks: Vec<&mut [i64]> = parts.iter_mut().filter_map(|it| it.next()).collect();
-                items.push((p, m, v, sum, blocks));
+                if run[b] {
+                    self.live[g][b] = true;
+                    items.push((p, m, v, sum, blocks));
+                }
             }
             self.pool.install(|| {
                 items
@@ -530,6 +585,13 @@ impl ParallelCpuBackend {
                     });
             });
         }
+    }
+
+    /// Blocks of Adam's pass that were processed at least once (or loaded with moments).
+    pub fn live_blocks(&self) -> (usize, usize) {
+        let n = self.live.iter().map(|l| l.len()).sum();
+        let k = self.live.iter().flatten().filter(|&&x| x).count();
+        (k, n)
     }
 
     /// Signed distances at world points.

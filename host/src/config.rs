@@ -8,19 +8,24 @@
 //!
 //! The field lives in an axis-aligned box, chosen in this order:
 //! 1. `scene.min` / `scene.max` from the configuration (both must be given);
-//! 2. the `scene_box` of the dataset's `scene.json` (a synthetic sequence) grown by
-//!    `scene.synthetic_margin` (0.1 m) on every side;
-//! 3. derived from the camera path: the box around every camera centre and the points at
-//!    `scene.path_depth` (m) along the rays through the four image corners and the centre of
-//!    every frame, grown by `scene.path_margin` on every side. Monocular mapping has no depth
-//!    to bound the scene, so `path_depth` is a guess of the room size: set the box explicitly
-//!    when it is known.
+//! 2. the `scene_box` of the dataset's own metadata (`scene.json` of a synthetic sequence)
+//!    grown by `scene.synthetic_margin` (0.1 m) on every side;
+//! 3. otherwise a default box placed around the **first** camera, the only pose a robot knows
+//!    when it starts (nothing reads a later pose): `scene.default_horizontal` (24 m) on each
+//!    horizontal side, centred on the camera, and from `scene.default_below` (2 m) below to
+//!    `scene.default_above` (3 m) above it. "Up" is the world axis closest to the first
+//!    camera's image up direction (`-y` of the camera frame). A camera that later leaves the
+//!    box is warned about (`frames_outside_box` in summary.json).
+//!
+//! Rays are sampled up to `model.max_depth` (6 m) from the camera, so a large box does not
+//! spread the samples; the map's memory for the box is printed before mapping and checked
+//! against `scene.memory_budget_mb`.
 
 use std::path::Path;
 
 use anyhow::{bail, Context};
 use himap_core::adam::AdamConfig;
-use himap_core::camera::{Intrinsics, Pose};
+use himap_core::camera::Pose;
 use himap_core::grid::{GridConfig, GridKind, MAX_LEVELS};
 use himap_core::mapper::{KeyframeOverflow, MapperConfig};
 use himap_core::model::{ModelConfig, NUM_GROUPS};
@@ -65,10 +70,15 @@ pub struct ModelSection {
     pub sdf_bias_init: f32,
     /// Geometric initialisation before mapping: "none" (random grids + `sdf_bias_init`) or
     /// "sphere" (fit the geometry to the inverted sphere of radius `geo_init_radius` around
-    /// the mean camera centre, see `himap::geo_init`).
+    /// the first camera centre, see `himap::geo_init`).
     pub geo_init: String,
     /// Radius (m) of the initial sphere.
     pub geo_init_radius: f32,
+    /// Outside the sphere the target is cut at `-geo_init_solid` (m): shallow enough that a
+    /// camera walking into space not seen yet gets gradients.
+    pub geo_init_solid: f32,
+    /// Farthest sampled depth along a camera ray (m, z-depth; 0 = up to the box exit).
+    pub max_depth: f32,
     /// Adam iterations (4096 random points each, lr 0.01) of the sphere fit.
     pub geo_init_iters: u32,
 }
@@ -125,6 +135,11 @@ pub struct MapperSection {
     pub lambda_depth_prior: f32,
     pub depth_prior: f32,
     pub depth_prior_iters: u32,
+    /// After them: the prior with weight `lambda_depth_prior_online` on pixels rendered
+    /// closer than `depth_prior_near` (m) only, so that views collapsed onto the camera in
+    /// newly explored space get a plausible start (0 = off; `small`: 1.0, 0.5 m).
+    pub lambda_depth_prior_online: f32,
+    pub depth_prior_near: f32,
     /// Keyframe cache capacity.
     pub max_keyframes: u32,
     /// When the cache is full: "thin" (drop every other keyframe) or "drop-oldest".
@@ -155,9 +170,11 @@ pub struct SceneSection {
     pub max: Option<[f32; 3]>,
     /// Margin around a synthetic `scene.json` box (m).
     pub synthetic_margin: f32,
-    /// Camera-path bounds: depth along the corner rays (m) and margin (m).
-    pub path_depth: f32,
-    pub path_margin: f32,
+    /// The default box around the first camera (see the module documentation): horizontal
+    /// side (m), and how far it reaches below and above the camera along "up" (m).
+    pub default_horizontal: f32,
+    pub default_below: f32,
+    pub default_above: f32,
     /// Largest memory the map of the scene box may take (MB: parameters, Adam moments and the
     /// CPU backend's gradient buffers); a larger map is an error before anything is allocated.
     pub memory_budget_mb: f64,
@@ -191,6 +208,10 @@ pub struct EvalSection {
     /// report its averages (`final_*` in summary.json), so forgetting of early regions shows
     /// (0 = off).
     pub final_every: u32,
+    /// `mesh.ply` keeps the faces some mapped view saw: a vertex in a view's frustum and at
+    /// most this far (m) behind its rendered depth (`mesh_full.ply` keeps every face of the
+    /// observed region).
+    pub observed_margin: f32,
 }
 
 /// Everything of a mapping run.
@@ -310,6 +331,8 @@ impl Config {
                 sdf_bias_init: 0.3,
                 geo_init: "none".into(),
                 geo_init_radius: 2.0,
+                geo_init_solid: 0.3,
+                max_depth: 6.0,
                 geo_init_iters: 200,
             },
             mapper: MapperSection {
@@ -330,6 +353,8 @@ impl Config {
                 lambda_depth_prior: m.lambda_depth_prior,
                 depth_prior: m.depth_prior,
                 depth_prior_iters: m.depth_prior_iters,
+                lambda_depth_prior_online: m.lambda_depth_prior_online,
+                depth_prior_near: m.depth_prior_near,
                 max_keyframes: m.max_keyframes,
                 keyframe_overflow: "thin".into(),
                 overlap_pixels: m.overlap_pixels,
@@ -345,8 +370,9 @@ impl Config {
                 min: None,
                 max: None,
                 synthetic_margin: 0.1,
-                path_depth: 3.0,
-                path_margin: 0.5,
+                default_horizontal: 24.0,
+                default_below: 2.0,
+                default_above: 3.0,
                 memory_budget_mb: 8192.0,
             },
             eval: EvalSection {
@@ -358,6 +384,7 @@ impl Config {
                 mesh_samples: 200_000,
                 cull: "auto".into(),
                 final_every: 10,
+                observed_margin: 0.1,
             },
         }
     }
@@ -375,8 +402,8 @@ impl Config {
     ///   sharpen to ~12: ICL PSNR 18.9 -> 21.3 dB, SSIM 0.56 -> 0.62, Depth L1 11.9 -> 10.5 cm).
     ///   Our SDF is in metres where the peers' is in truncation units (6-10 cm), so beta 10
     ///   is ten times softer here than in ESLAM / the author's benchmark.
-    /// - `model.geo_init` "sphere" of radius 2 m around the mean camera centre (a guess of
-    ///   the room size, like `scene.path_depth`; see `himap::geo_init`): the random field
+    /// - `model.geo_init` "sphere" of radius 2 m around the first camera centre (a guess of
+    ///   the room size; see `himap::geo_init`): the random field
     ///   with an output bias of 0.3 m renders every unexplored region as fog about 1 m in
     ///   front of the camera. Demo room: Depth L1 96 -> 18 cm, Accuracy 19.4 -> 5.8 cm,
     ///   Completion 18.6 -> 5.9 cm, ratio 10 -> 49 %, PSNR 15.8 -> 19.0 dB.
@@ -438,6 +465,8 @@ impl Config {
         c.mapper.init_iters = 300;
         c.mapper.init_color_iters = 100;
         c.mapper.depth_prior_iters = 60;
+        c.mapper.lambda_depth_prior_online = 1.0;
+        c.mapper.depth_prior_near = 0.5;
         c.mapper.pixels = 512;
         c.mapper.new_frame_share = 0.75;
         c.mapper.max_keyframes = 128;
@@ -502,6 +531,15 @@ impl Config {
         }
         if !(self.model.geo_init_radius > 0.0 && self.model.geo_init_radius.is_finite()) {
             bail!("model.geo_init_radius must be positive");
+        }
+        if !(self.model.geo_init_solid > 0.0 && self.model.geo_init_solid.is_finite()) {
+            bail!("model.geo_init_solid must be positive");
+        }
+        if !(self.model.max_depth >= 0.0 && self.model.max_depth.is_finite()) {
+            bail!("model.max_depth must be >= 0 (0 = up to the box exit)");
+        }
+        if !(self.eval.observed_margin >= 0.0 && self.eval.observed_margin.is_finite()) {
+            bail!("eval.observed_margin must be >= 0");
         }
         if self.scene.min.is_some() != self.scene.max.is_some() {
             bail!("scene.min and scene.max must be given together");
@@ -604,6 +642,7 @@ impl Config {
             beta_init: m.beta_init,
             grid_init_std: m.grid_init_std,
             sdf_bias_init: m.sdf_bias_init,
+            max_depth: m.max_depth,
         })
     }
 
@@ -628,6 +667,8 @@ impl Config {
             lambda_depth_prior: m.lambda_depth_prior,
             depth_prior: m.depth_prior,
             depth_prior_iters: m.depth_prior_iters,
+            lambda_depth_prior_online: m.lambda_depth_prior_online,
+            depth_prior_near: m.depth_prior_near,
             max_keyframes: m.max_keyframes,
             keyframe_overflow: self.keyframe_overflow()?,
             overlap_pixels: m.overlap_pixels,
@@ -649,12 +690,12 @@ impl Config {
         ]
     }
 
-    /// The scene box (see the module documentation) and where it came from.
+    /// The scene box (see the module documentation) and where it came from, knowing only the
+    /// dataset's metadata and the first camera's pose.
     pub fn scene_bounds(
         &self,
         dataset_dir: &Path,
-        k: &Intrinsics,
-        poses: &[Pose],
+        first: &Pose,
     ) -> anyhow::Result<(Aabb, &'static str)> {
         if let (Some(min), Some(max)) = (self.scene.min, self.scene.max) {
             let b = Aabb::new(min, max);
@@ -672,31 +713,37 @@ impl Config {
                 "scene.json",
             ));
         }
-        if poses.is_empty() {
-            bail!("no frames to derive the scene box from");
+        let s = &self.scene;
+        if !(s.default_horizontal > 0.0 && s.default_below + s.default_above > 0.0) {
+            bail!(
+                "scene.default_horizontal and scene.default_below + default_above must be positive"
+            );
         }
-        let mut lo = [f32::INFINITY; 3];
-        let mut hi = [f32::NEG_INFINITY; 3];
-        let mut add = |p: [f32; 3]| {
-            for a in 0..3 {
-                lo[a] = lo[a].min(p[a]);
-                hi[a] = hi[a].max(p[a]);
-            }
-        };
-        let (w, h) = (k.width as f32 - 1.0, k.height as f32 - 1.0);
-        let d = self.scene.path_depth;
-        for p in poses {
-            add(p.origin());
-            for (u, v) in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h), (0.5 * w, 0.5 * h)] {
-                add(p.transform(k.direction(u, v).map(|x| x * d)));
+        let o = first.origin();
+        // Image up is -y of the camera frame: the world axis closest to it is "up".
+        let up_world = first.rotate([0.0, -1.0, 0.0]);
+        let up = (0..3)
+            .max_by(|&a, &b| up_world[a].abs().total_cmp(&up_world[b].abs()))
+            .unwrap_or(1);
+        let sign = if up_world[up] >= 0.0 { 1.0 } else { -1.0 };
+        let mut lo = [0.0f32; 3];
+        let mut hi = [0.0f32; 3];
+        for a in 0..3 {
+            if a == up {
+                let (b, t) = (o[a] - sign * s.default_below, o[a] + sign * s.default_above);
+                (lo[a], hi[a]) = (b.min(t), b.max(t));
+            } else {
+                (lo[a], hi[a]) = (
+                    o[a] - 0.5 * s.default_horizontal,
+                    o[a] + 0.5 * s.default_horizontal,
+                );
             }
         }
-        let m = self.scene.path_margin;
-        let b = Aabb::new(lo.map(|x| x - m), hi.map(|x| x + m));
+        let b = Aabb::new(lo, hi);
         if !b.is_valid() {
-            bail!("could not derive a scene box from the camera path");
+            bail!("could not place the default scene box around the first camera {o:?}");
         }
-        Ok((b, "camera path"))
+        Ok((b, "default around the first camera"))
     }
 }
 
@@ -769,22 +816,32 @@ mod tests {
     }
 
     #[test]
-    fn camera_path_bounds_contain_the_cameras_and_the_view_depth() {
+    fn default_box_is_placed_around_the_first_camera_with_its_up_axis() {
         let c = Config::small();
-        let k = crate::synth::synth_intrinsics(64, 48);
+        // identity: camera y points down in the world, so world -y is up
         let (b, src) = c
-            .scene_bounds(Path::new("/nonexistent"), &k, &[Pose::IDENTITY])
+            .scene_bounds(Path::new("/nonexistent"), &Pose::IDENTITY)
             .unwrap();
-        assert_eq!(src, "camera path");
-        // camera at 0 looking along +z: z spans [0, 3] plus the 0.5 margin
-        assert!(
-            (b.min[2] + 0.5).abs() < 1e-6 && (b.max[2] - 3.5).abs() < 1e-6,
-            "{b:?}"
-        );
+        assert_eq!(src, "default around the first camera");
+        assert_eq!(b, Aabb::new([-12.0, -3.0, -12.0], [12.0, 2.0, 12.0]));
+        // a camera at (1, 2, 3) whose image up is world +z (camera -y = world +z)
+        let p = Pose {
+            m: [
+                [1.0, 0.0, 0.0, 1.0],
+                [0.0, 0.0, 1.0, 2.0],
+                [0.0, -1.0, 0.0, 3.0],
+            ],
+        };
+        let (b, _) = c.scene_bounds(Path::new("/nonexistent"), &p).unwrap();
+        assert_eq!(b, Aabb::new([-11.0, -10.0, 1.0], [13.0, 14.0, 6.0]));
         let mut c2 = c.clone();
         c2.scene.min = Some([-1.0; 3]);
         c2.scene.max = Some([2.0; 3]);
-        let (b, src) = c2.scene_bounds(Path::new("/x"), &k, &[]).unwrap();
+        let (b, src) = c2.scene_bounds(Path::new("/x"), &p).unwrap();
         assert_eq!((b, src), (Aabb::new([-1.0; 3], [2.0; 3]), "config"));
+        c2.scene.min = None;
+        c2.scene.max = None;
+        c2.scene.default_horizontal = 0.0;
+        assert!(c2.scene_bounds(Path::new("/x"), &p).is_err());
     }
 }

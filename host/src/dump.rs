@@ -64,6 +64,7 @@ pub fn small_config(render_mode: RenderMode) -> ModelConfig {
         // a single step (the cross-check wants non-trivial gradients everywhere).
         grid_init_std: 0.1,
         sdf_bias_init: 0.3,
+        max_depth: 0.0,
     }
 }
 

@@ -493,6 +493,23 @@ impl fmt::Display for EvalReport {
         )?;
         writeln!(
             f,
+            "culling: {}",
+            match self.options.culling {
+                Culling::None => "none (the whole reconstruction)".to_string(),
+                Culling::Frustum => format!(
+                    "frustum of every {}th ground-truth frame (the peers' protocol)",
+                    self.options.cull_stride
+                ),
+                Culling::FrustumOcclusion => format!(
+                    "frustum and occlusion (within {} cm of the ground-truth depth) of every \
+                     {}th ground-truth frame",
+                    self.options.occlusion_eps_m * 100.0,
+                    self.options.cull_stride
+                ),
+            }
+        )?;
+        writeln!(
+            f,
             "Accuracy {:.2} cm | Completion {:.2} cm | Completion ratio {:.2} % (< {} cm)",
             m.accuracy_cm,
             m.completion_cm,

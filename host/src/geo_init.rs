@@ -1,7 +1,8 @@
 //! Geometric initialisation of the SDF before mapping (no images, no depth): the geometry grid
-//! and decoder are fitted to an inverted sphere `s*(p) = r - |p - c|` (positive, free space,
-//! inside; the camera lives inside). This replaces the near-camera "fog" of a constant output
-//! bias with one multi-view consistent surface at a plausible distance, the monocular analogue
+//! and decoder are fitted to an inverted sphere `s*(p) = max(r - |p - c|, -solid)` (positive, free
+//! space, inside; the camera lives inside), centred on the first camera. This replaces the
+//! near-camera "fog" of a constant output bias with one multi-view consistent surface at a
+//! plausible distance, the monocular analogue
 //! of the sphere initialisations of NeRF-SLAM peers and a geometric form of DIM-SLAM's constant
 //! 1.5 m depth prior (which, applied per view, is not consistent between views).
 //!
@@ -23,6 +24,8 @@ pub struct SphereInit {
     pub center: [f32; 3],
     /// Sphere radius (m).
     pub radius: f32,
+    /// The target is cut below at `-solid` (m) outside the sphere.
+    pub solid: f32,
     /// Adam iterations and points per iteration.
     pub iters: u32,
     pub points: u32,
@@ -68,8 +71,23 @@ pub fn fit_sphere(data: &mut ModelData, init: &SphereInit) -> f32 {
     let mut mse = 0.0f32;
     let mut pts = vec![[0.0f32; 3]; n as usize];
     for it in 0..init.iters {
-        for p in pts.iter_mut() {
-            for ((x, lo), hi) in p.iter_mut().zip(aabb.min).zip(aabb.max) {
+        // Three points in four near the sphere (the cube of half side 1.5 r around the
+        // centre, cut to the box), one anywhere in the box: a large box (a building, the
+        // default box around the first camera) would otherwise leave the sphere with a few
+        // points per iteration.
+        for (j, p) in pts.iter_mut().enumerate() {
+            let near = j % 4 != 3;
+            for (a, x) in p.iter_mut().enumerate() {
+                let (mut lo, mut hi) = (aabb.min[a], aabb.max[a]);
+                if near {
+                    let (l, h) = (
+                        init.center[a] - 1.5 * init.radius,
+                        init.center[a] + 1.5 * init.radius,
+                    );
+                    if l < hi && h > lo {
+                        (lo, hi) = (lo.max(l), hi.min(h));
+                    }
+                }
                 *x = lo + (hi - lo) * rng.unit();
             }
         }
@@ -88,7 +106,11 @@ pub fn fit_sphere(data: &mut ModelData, init: &SphereInit) -> f32 {
                     p[1] - init.center[1],
                     p[2] - init.center[2],
                 ];
-                let target = init.radius - (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                // Truncated below at -solid: space not seen yet is "just solid", where
+                // the renderer's gradients do not vanish, so the depth prior and the warping
+                // loss can open it when a camera walks in (at -2 m, sig'(-beta s) ~ 2e-9).
+                let target = (init.radius - (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt())
+                    .max(-init.solid);
                 let s = sdf_at(&layout, &params, p, &mut scratch);
                 let r = s - target;
                 err += r * r;
@@ -132,6 +154,7 @@ mod tests {
         let init = SphereInit {
             center: [0.2, 0.0, -0.1],
             radius: 1.5,
+            solid: 1.5,
             iters: 0,
             points: 512,
             lr: 0.01,

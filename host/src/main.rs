@@ -128,13 +128,19 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
-    /// Write a synthetic Replica-layout sequence of a procedural room (colour, exact depth,
-    /// poses, intrinsics) plus its ground-truth mesh `gt_mesh.ply`.
+    /// Write a synthetic Replica-layout sequence (colour, exact depth, poses, intrinsics) plus
+    /// its ground-truth mesh `gt_mesh.ply`: a procedural room orbited from its middle, or a
+    /// house of three rooms with doors walked through from one end to the other (at least
+    /// 25 m; no scene box is written, so mapping it uses the default box policy).
     Synth {
         #[arg(long)]
         out: PathBuf,
-        #[arg(long, default_value_t = 60)]
-        frames: usize,
+        /// room or house.
+        #[arg(long, default_value = "room")]
+        scene: String,
+        /// Frames (default: 60 for the room, 360 for the house).
+        #[arg(long)]
+        frames: Option<usize>,
         #[arg(long, default_value_t = 160)]
         width: u32,
         #[arg(long, default_value_t = 120)]
@@ -320,6 +326,7 @@ fn run() -> anyhow::Result<()> {
                 backend,
                 progress: true,
                 preflight: !no_preflight,
+                stop_after: None,
             };
             let s = himap::mapper_cli::run_map(&opts)?;
             println!("{}", himap::mapper_cli::summary_table(&s));
@@ -423,30 +430,61 @@ fn run() -> anyhow::Result<()> {
         }
         Command::Synth {
             out,
+            scene,
             frames,
             width,
             height,
             seed,
-        } => {
-            let opts = himap::synth::SynthOptions {
-                frames,
-                width,
-                height,
-                seed,
-            };
-            let s = himap::synth::write_synthetic(&out, &opts)
-                .with_context(|| format!("writing the synthetic sequence to {}", out.display()))?;
-            println!(
-                "wrote {} frames of {}x{} to {} ({} ground-truth triangles); scene box {:?} .. {:?}",
-                s.frames,
-                s.intrinsics.width,
-                s.intrinsics.height,
-                s.out.display(),
-                s.mesh_triangles,
-                s.scene_box.min,
-                s.scene_box.max
-            );
-        }
+        } => match scene.as_str() {
+            "room" => {
+                let opts = himap::synth::SynthOptions {
+                    frames: frames.unwrap_or(60),
+                    width,
+                    height,
+                    seed,
+                };
+                let s = himap::synth::write_synthetic(&out, &opts).with_context(|| {
+                    format!("writing the synthetic sequence to {}", out.display())
+                })?;
+                println!(
+                    "wrote {} frames of {}x{} to {} ({} ground-truth triangles); scene box {:?} .. {:?}",
+                    s.frames,
+                    s.intrinsics.width,
+                    s.intrinsics.height,
+                    s.out.display(),
+                    s.mesh_triangles,
+                    s.scene_box.min,
+                    s.scene_box.max
+                );
+            }
+            "house" => {
+                let opts = himap::synth::house::HouseOptions {
+                    frames: frames.unwrap_or(360),
+                    width,
+                    height,
+                    seed,
+                };
+                let s = himap::synth::house::write_house(&out, &opts)
+                    .with_context(|| format!("writing the house sequence to {}", out.display()))?;
+                let (lo, hi) = s.house.interior();
+                println!(
+                    "wrote {} frames of {}x{} of a {}-room house ({:.1} x {:.1} x {:.1} m, {:.1} m \
+                     walk) to {} ({} ground-truth triangles; no scene box: the default box policy \
+                     applies)",
+                    s.frames,
+                    s.intrinsics.width,
+                    s.intrinsics.height,
+                    s.house.lengths.len(),
+                    hi[0] - lo[0],
+                    hi[1] - lo[1],
+                    hi[2] - lo[2],
+                    s.path_m,
+                    out.display(),
+                    s.mesh_triangles,
+                );
+            }
+            other => anyhow::bail!("unknown synthetic scene '{other}': use room or house"),
+        },
         Command::Eval {
             mesh,
             gt,

@@ -49,6 +49,9 @@ pub struct MapOptions {
     pub progress: bool,
     /// Check every frame's files and image headers before the first iteration.
     pub preflight: bool,
+    /// Stop mapping once this many frames are pushed, without the final flush (the map as it
+    /// stood then is evaluated and saved). `None` maps the whole selection.
+    pub stop_after: Option<usize>,
 }
 
 /// One row of `metrics.csv`.
@@ -104,6 +107,8 @@ pub struct MapSummary {
     pub mesh_ground_truth: Option<String>,
     pub mesh_error: Option<String>,
     pub mesh_faces: usize,
+    /// Faces of `mesh_full.ply` (the extraction region before the visibility culling).
+    pub mesh_full_faces: usize,
     /// SDF level of `mesh.ply` (m) and the trained beta it was derived from.
     pub mesh_level: f32,
     pub beta: f32,
@@ -163,6 +168,7 @@ pub fn initial_data(
             &crate::geo_init::SphereInit {
                 center: c,
                 radius: config.model.geo_init_radius,
+                solid: config.model.geo_init_solid,
                 iters: config.model.geo_init_iters,
                 points: 4096,
                 lr: 0.01,
@@ -516,8 +522,12 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
             );
         }
     }
-    let poses: Vec<Pose> = (0..n).map(|i| ds.pose(i)).collect();
-    let (aabb, box_src) = cfg.scene_bounds(&opts.dataset, &k, &poses)?;
+    if n == 0 {
+        bail!("the dataset selection has no frames");
+    }
+    // Online: the box and the initialisation know only the first frame's pose, which is the
+    // first thing pushed (nothing here reads a later pose).
+    let first = ds.pose(0);
     std::fs::create_dir_all(opts.out.join("renders"))
         .with_context(|| format!("creating {}", opts.out.display()))?;
 
@@ -526,18 +536,8 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     if opts.progress {
         eprintln!("backend: {}", decision.reason);
     }
-    let center = {
-        let mut c = [0.0f32; 3];
-        for p in &poses {
-            let o = p.origin();
-            for a in 0..3 {
-                c[a] += o[a] / poses.len().max(1) as f32;
-            }
-        }
-        c
-    };
-    check_map_memory(cfg, aabb, box_src, opts.threads, opts.progress)?;
-    let data = initial_data(cfg, aabb, Some(center))?;
+    let start = start_map(cfg, &opts.dataset, &first, opts.threads, opts.progress)?;
+    let (aabb, box_src, data) = (start.aabb, start.box_src, start.data);
     let store = ImageStore {
         width: k.width,
         height: k.height,
@@ -549,7 +549,6 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         aabb,
         box_src,
         reason: decision.reason.clone(),
-        poses,
     };
     if decision.vulkan {
         match crate::select::vulkan_backend(&data, cfg.adam_config(), store) {
@@ -573,6 +572,35 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     let backend =
         ParallelCpuBackend::new(data, cfg.adam_config(), opts.threads)?.with_images(store);
     map_with(opts, ds.as_ref(), ctx, backend)
+}
+
+/// The start of an online mapping run: the scene box and where it came from, and the
+/// initial model (geometric initialisation around the first camera).
+pub struct MapStart {
+    pub aabb: Aabb,
+    pub box_src: &'static str,
+    pub data: ModelData,
+}
+
+/// What a mapping run needs before its first frame, from the configuration, the dataset's
+/// metadata and the first camera's pose only ([`Config::scene_bounds`], the memory check, the
+/// geometric initialisation centred on the first camera). `himap map` and a caller driving
+/// [`Mapper::push_frame`] itself start from this and get the same map.
+pub fn start_map(
+    cfg: &Config,
+    dataset_dir: &std::path::Path,
+    first: &Pose,
+    threads: usize,
+    print: bool,
+) -> anyhow::Result<MapStart> {
+    let (aabb, box_src) = cfg.scene_bounds(dataset_dir, first)?;
+    check_map_memory(cfg, aabb, box_src, threads, print)?;
+    let data = initial_data(cfg, aabb, Some(first.origin()))?;
+    Ok(MapStart {
+        aabb,
+        box_src,
+        data,
+    })
 }
 
 /// Bytes the map of `aabb` takes on the CPU backend with `threads` workers: parameters and
@@ -636,7 +664,6 @@ struct RunContext {
     aabb: Aabb,
     box_src: &'static str,
     reason: String,
-    poses: Vec<Pose>,
 }
 
 /// The mapping loop, evaluation and outputs of [`run_map`] on one backend.
@@ -655,7 +682,6 @@ where
         aabb,
         box_src,
         reason,
-        poses,
     } = ctx;
     let cfg = &opts.config;
     let n = ds.len();
@@ -755,8 +781,12 @@ where
     };
 
     let mut outside_box = 0usize;
-    for i in 0..n {
+    // Poses of the frames pushed so far (the mesh level is measured over them after mapping).
+    let mut poses: Vec<Pose> = Vec::with_capacity(n);
+    let pushed = opts.stop_after.map_or(n, |s| s.min(n));
+    for i in 0..pushed {
         let frame = ds.frame(i)?;
+        poses.push(frame.pose);
         let o = frame.pose.origin();
         if (0..3).any(|a| !(o[a] >= aabb.min[a] && o[a] <= aabb.max[a])) {
             if outside_box == 0 {
@@ -811,7 +841,7 @@ where
         pb.inc(1);
         last_frame = Some(frame);
     }
-    if let Some(frame) = last_frame {
+    if let Some(frame) = last_frame.filter(|_| pushed == n) {
         let t0 = Instant::now();
         if let Some(r) = mapper
             .flush(&mut |_: &IterInfo| {})
@@ -852,7 +882,25 @@ where
                 .unwrap_or_else(|| cfg.surface_level(beta))
         }
     };
-    let mesh = map_mesh(&mut backend, aabb, cfg.eval.mesh_resolution, mesh_level)?;
+    // The observed scene: the mapped views' rendered depth bounds the extraction region
+    // (mesh_full.ply) and culls it to what some view saw (mesh.ply).
+    let views = observed_views(&mut backend, &k, &poses, OBSERVED_VIEWS)?;
+    let region = observed_region(&views, aabb, 2.0 * cfg.eval.mesh_resolution).unwrap_or(aabb);
+    let full = map_mesh(&mut backend, region, cfg.eval.mesh_resolution, mesh_level)?;
+    full.write_ply(&opts.out.join("mesh_full.ply"))?;
+    let mesh = crate::eval::cull_mesh(
+        &full,
+        views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
+        Some(cfg.eval.observed_margin),
+    );
+    if opts.progress {
+        eprintln!(
+            "mesh: {} faces over the observed region, {} seen by the mapped views (mesh.ply; \
+             mesh_full.ply keeps all)",
+            full.faces.len(),
+            mesh.faces.len()
+        );
+    }
     let mesh_path = opts.out.join("mesh.ply");
     mesh.write_ply(&mesh_path)?;
     let has_gt = opts.dataset.join("gt_mesh.ply").is_file() || ds.has_depth();
@@ -907,6 +955,7 @@ where
         mesh_ground_truth: mesh_gt,
         mesh_error: mesh_err,
         mesh_faces: mesh.faces.len(),
+        mesh_full_faces: full.faces.len(),
         mesh_level,
         beta,
         seconds_total: t_start.elapsed().as_secs_f64(),
@@ -1085,6 +1134,75 @@ pub fn map_mesh<B: MapBackend>(
     }
 }
 
+/// Views of the pushed frames [`observed_views`] renders for the observed region.
+const OBSERVED_VIEWS: usize = 96;
+
+/// Renders the depth of up to `max_views` of `poses` (spread evenly) from the map at an
+/// eighth of `k`'s resolution (at least 16 px wide); a pixel with opacity below 0.5 gets depth
+/// 0 (nothing seen), others `D / O`.
+pub fn observed_views<B: Backend>(
+    backend: &mut B,
+    k: &Intrinsics,
+    poses: &[Pose],
+    max_views: usize,
+) -> anyhow::Result<Vec<(Intrinsics, Pose, Vec<f32>)>>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let w = (k.width / 8).max(16.min(k.width));
+    let h = ((k.height as u64 * w as u64) / k.width.max(1) as u64).max(1) as u32;
+    let lk = k.resized(w, h);
+    let n = poses.len().min(max_views);
+    let mut out = Vec::with_capacity(n);
+    for v in 0..n {
+        let pose = poses[v * poses.len() / n];
+        let r = render_view(backend, &lk, &pose)?;
+        let d = r
+            .iter()
+            .map(|r| {
+                if r.opacity >= 0.5 && r.depth.is_finite() {
+                    r.depth / r.opacity
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        out.push((lk, pose, d));
+    }
+    Ok(out)
+}
+
+/// The box around the views' cameras and rendered surface points, grown by `margin` and cut
+/// to `aabb`; `None` when it is empty.
+pub fn observed_region(
+    views: &[(Intrinsics, Pose, Vec<f32>)],
+    aabb: Aabb,
+    margin: f32,
+) -> Option<Aabb> {
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    let mut add = |p: [f32; 3]| {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    };
+    for (k, pose, depth) in views {
+        add(pose.origin());
+        for (i, &d) in depth.iter().enumerate() {
+            if d > 0.0 {
+                let (u, v) = ((i % k.width as usize) as f32, (i / k.width as usize) as f32);
+                add(pose.transform(k.direction(u, v).map(|x| x * d)));
+            }
+        }
+    }
+    let b = Aabb::new(
+        [0, 1, 2].map(|a| (lo[a] - margin).max(aabb.min[a])),
+        [0, 1, 2].map(|a| (hi[a] + margin).min(aabb.max[a])),
+    );
+    b.is_valid().then_some(b)
+}
+
 /// `himap mesh`: extracts the mesh of a saved map at `resolution` (default: its
 /// configuration's) and SDF `level` (default: [`Config::surface_level`]) into `out`.
 /// Returns the face count and the level used.
@@ -1199,6 +1317,7 @@ pub fn run_demo(
         backend: backend.to_string(),
         progress,
         preflight: true,
+        stop_after: None,
     };
     let s = run_map(&opts)?;
     Ok((s, opts.out))

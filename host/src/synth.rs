@@ -140,6 +140,44 @@ impl Material {
     }
 }
 
+/// A seeded material of `kind`: 0 plain, 1 checker, 2 stripes, 3 noise (textures mix a dark
+/// and a light colour, so they always have contrast).
+fn random_material(kind: u32, u: &mut dyn FnMut() -> f32) -> Material {
+    // Colours with channels in [lo, lo + span).
+    let colour = |lo: f32, span: f32, u: &mut dyn FnMut() -> f32| {
+        [lo + span * u(), lo + span * u(), lo + span * u()]
+    };
+    let a = colour(0.05, 0.45, u);
+    let b = colour(0.5, 0.45, u);
+    match kind {
+        0 => Material::Plain {
+            color: colour(0.15, 0.8, u),
+        },
+        1 => Material::Checker {
+            a,
+            b,
+            size: 0.2 + 0.3 * u(),
+            offset: [u(), u(), u()].map(|x| 0.05 + 0.9 * x),
+        },
+        2 => {
+            let th = TAU * u();
+            let ph = (u() - 0.5) * 2.0;
+            Material::Stripes {
+                a,
+                b,
+                period: 0.15 + 0.25 * u(),
+                dir: normalize([cos(th), sin(th), ph]),
+            }
+        }
+        _ => Material::Noise {
+            a,
+            b,
+            scale: 0.15 + 0.35 * u(),
+            seed: (u() * 16_777_216.0) as u32,
+        },
+    }
+}
+
 /// A box standing in the room.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SceneBox {
@@ -311,42 +349,7 @@ impl Scene {
             target_phase: TAU * u(),
         };
 
-        // Colours with channels in [lo, lo + span).
-        let colour = |lo: f32, span: f32, u: &mut dyn FnMut() -> f32| {
-            [lo + span * u(), lo + span * u(), lo + span * u()]
-        };
-        // Textures mix a dark and a light colour, so they always have contrast.
-        let textured = |kind: u32, u: &mut dyn FnMut() -> f32| -> Material {
-            let a = colour(0.05, 0.45, u);
-            let b = colour(0.5, 0.45, u);
-            match kind {
-                0 => Material::Plain {
-                    color: colour(0.15, 0.8, u),
-                },
-                1 => Material::Checker {
-                    a,
-                    b,
-                    size: 0.2 + 0.3 * u(),
-                    offset: [u(), u(), u()].map(|x| 0.05 + 0.9 * x),
-                },
-                2 => {
-                    let th = TAU * u();
-                    let ph = (u() - 0.5) * 2.0;
-                    Material::Stripes {
-                        a,
-                        b,
-                        period: 0.15 + 0.25 * u(),
-                        dir: normalize([cos(th), sin(th), ph]),
-                    }
-                }
-                _ => Material::Noise {
-                    a,
-                    b,
-                    scale: 0.15 + 0.35 * u(),
-                    seed: (u() * 16_777_216.0) as u32,
-                },
-            }
-        };
+        let textured = |kind: u32, u: &mut dyn FnMut() -> f32| random_material(kind, u);
         // Walls: one of each kind in a seeded order; floor textured; ceiling plain.
         let mut kinds = [0u32, 1, 2, 3];
         for i in (1..4).rev() {
@@ -795,31 +798,21 @@ pub fn read_scene_json(path: &Path) -> anyhow::Result<(Scene, Aabb)> {
     Ok((f.scene, Aabb::new(f.scene_box.min, f.scene_box.max)))
 }
 
-/// Renders a synthetic sequence for `opts.seed` into `out` (created if needed) in the Replica
-/// layout, with `gt_mesh.ply` and `scene.json` (see the module documentation).
-pub fn write_synthetic(out: &Path, opts: &SynthOptions) -> anyhow::Result<SynthSummary> {
-    if opts.frames == 0 {
-        bail!("synthetic sequence needs at least one frame");
-    }
-    if opts.width < 2 || opts.height < 2 || opts.width > 16384 || opts.height > 16384 {
-        bail!(
-            "synthetic image size {}x{} is out of range (2..=16384)",
-            opts.width,
-            opts.height
-        );
-    }
+/// Writes a posed sequence in the Replica layout: `results/frame%06d.png` and
+/// `depth%06d.png` of `render(pose)` for every pose (in parallel), `traj.txt` and
+/// `cam_params.json`.
+fn write_sequence(
+    out: &Path,
+    k: &Intrinsics,
+    poses: &[Pose],
+    render: impl Fn(&Pose) -> (RgbImage, DepthImage) + Sync,
+) -> anyhow::Result<()> {
     let results = out.join("results");
     std::fs::create_dir_all(&results).with_context(|| format!("creating {}", results.display()))?;
-    let scene = Scene::generate(opts.seed);
-    let k = synth_intrinsics(opts.width, opts.height);
-    let poses: Vec<Pose> = (0..opts.frames)
-        .map(|i| synth_pose(&scene, i, opts.frames))
-        .collect();
-
-    (0..opts.frames)
+    (0..poses.len())
         .into_par_iter()
         .try_for_each(|i| -> anyhow::Result<()> {
-            let (rgb, depth) = scene.render(&k, &poses[i]);
+            let (rgb, depth) = render(&poses[i]);
             let rgb8 = rgb.to_rgb8();
             let depth16: Vec<u16> = depth
                 .data
@@ -853,7 +846,7 @@ pub fn write_synthetic(out: &Path, opts: &SynthOptions) -> anyhow::Result<SynthS
         })?;
 
     let mut traj = String::new();
-    for p in &poses {
+    for p in poses {
         let mut vals: Vec<String> = Vec::with_capacity(16);
         for row in &p.m {
             for x in row {
@@ -878,6 +871,28 @@ pub fn write_synthetic(out: &Path, opts: &SynthOptions) -> anyhow::Result<SynthS
     let cp = out.join("cam_params.json");
     std::fs::write(&cp, serde_json::to_string_pretty(&cam)?)
         .with_context(|| format!("writing {}", cp.display()))?;
+    Ok(())
+}
+
+/// Renders a synthetic sequence for `opts.seed` into `out` (created if needed) in the Replica
+/// layout, with `gt_mesh.ply` and `scene.json` (see the module documentation).
+pub fn write_synthetic(out: &Path, opts: &SynthOptions) -> anyhow::Result<SynthSummary> {
+    if opts.frames == 0 {
+        bail!("synthetic sequence needs at least one frame");
+    }
+    if opts.width < 2 || opts.height < 2 || opts.width > 16384 || opts.height > 16384 {
+        bail!(
+            "synthetic image size {}x{} is out of range (2..=16384)",
+            opts.width,
+            opts.height
+        );
+    }
+    let scene = Scene::generate(opts.seed);
+    let k = synth_intrinsics(opts.width, opts.height);
+    let poses: Vec<Pose> = (0..opts.frames)
+        .map(|i| synth_pose(&scene, i, opts.frames))
+        .collect();
+    write_sequence(out, &k, &poses, |p| scene.render(&k, p))?;
 
     let mesh = scene.mesh(SPHERE_SEGMENTS);
     let mp = out.join("gt_mesh.ply");
@@ -910,6 +925,8 @@ pub fn write_synthetic(out: &Path, opts: &SynthOptions) -> anyhow::Result<SynthS
         mesh_triangles: mesh.triangles.len(),
     })
 }
+
+pub mod house;
 
 #[cfg(test)]
 mod tests;

@@ -72,6 +72,7 @@ fn loss(step: u64) -> MappingLoss {
         warp,
         lambda_depth_prior: if step == 0 { 0.5 } else { 0.0 },
         depth_prior: 1.5,
+        depth_prior_near: 0.0,
     }
 }
 

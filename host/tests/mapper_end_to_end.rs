@@ -211,6 +211,7 @@ fn options(data: std::path::PathBuf, out: std::path::PathBuf, config: Config) ->
         backend: "cpu".into(),
         progress: false,
         preflight: true,
+        stop_after: None,
     }
 }
 

@@ -13,9 +13,9 @@
 //! | [`GridLayout`] | [`GRID_LAYOUT`] = 98 | kind, levels, channels, param_count, aabb (6), then per level (8): res (3), offset, plane_offsets (3), line_offsets (3), count |
 //! | [`MlpLayout`] | [`MLP_LAYOUT`] = 15 | n_in, hidden, hidden_layers, n_out, param_count, weight_offsets (5), bias_offsets (5) |
 //! | [`GridConfig`] | [`GRID_CONFIG`] = 11 | kind, levels, channels, cell_sizes (8) |
-//! | [`ModelConfig`] | [`MODEL_CONFIG`] = 36 | aabb (6), geometry grid config (11), appearance grid config (11), hidden, hidden_layers, dual_path, render_mode, samples, beta_init, grid_init_std, sdf_bias_init |
-//! | [`ModelLayout`] | [`MODEL_LAYOUT`] = 262 | config, geometry grid layout, appearance grid layout, geometry MLP layout, appearance MLP layout |
-//! | [`MappingLoss`] | [`MAPPING_LOSS`] = 16 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior |
+//! | [`ModelConfig`] | [`MODEL_CONFIG`] = 37 | aabb (6), geometry grid config (11), appearance grid config (11), hidden, hidden_layers, dual_path, render_mode, samples, beta_init, grid_init_std, sdf_bias_init, max_depth |
+//! | [`ModelLayout`] | [`MODEL_LAYOUT`] = 263 | config, geometry grid layout, appearance grid layout, geometry MLP layout, appearance MLP layout |
+//! | [`MappingLoss`] | [`MAPPING_LOSS`] = 17 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior, depth_prior_near |
 //! | window | [`WINDOW`] = 448 | intrinsics, frames, image width, image height, slots ([`MAX_WINDOW`]), poses ([`MAX_WINDOW`] x [`POSE`]), mapping loss |
 
 use himap_core::camera::{Intrinsics, Pose, PoseRead};
@@ -43,7 +43,7 @@ pub const MLP_LAYOUT: usize = 5 + 2 * (MAX_HIDDEN_LAYERS + 1);
 /// Words of a [`GridConfig`].
 pub const GRID_CONFIG: usize = 3 + MAX_LEVELS;
 /// Words of a [`ModelConfig`].
-pub const MODEL_CONFIG: usize = AABB + 2 * GRID_CONFIG + 8;
+pub const MODEL_CONFIG: usize = AABB + 2 * GRID_CONFIG + 9;
 /// Words of a [`ModelLayout`].
 pub const MODEL_LAYOUT: usize = MODEL_CONFIG + 2 * GRID_LAYOUT + 2 * MLP_LAYOUT;
 
@@ -68,7 +68,7 @@ pub fn split(w: &[u32], k: usize) -> usize {
 }
 
 /// Words of a [`MappingLoss`].
-pub const MAPPING_LOSS: usize = 16;
+pub const MAPPING_LOSS: usize = 17;
 /// Offset of the slot table in the window words.
 pub const WINDOW_SLOTS: usize = INTRINSICS + 3;
 /// Offset of the poses in the window words.
@@ -314,6 +314,7 @@ pub fn model_config_from_words(w: &[u32], at: usize) -> ModelConfig {
         beta_init: fword(w, b + 5),
         grid_init_std: fword(w, b + 6),
         sdf_bias_init: fword(w, b + 7),
+        max_depth: fword(w, b + 8),
     }
 }
 
@@ -330,6 +331,7 @@ pub fn model_config_to_words(c: &ModelConfig, w: &mut [u32], at: usize) {
     put(w, b + 5, c.beta_init.to_bits());
     put(w, b + 6, c.grid_init_std.to_bits());
     put(w, b + 7, c.sdf_bias_init.to_bits());
+    put(w, b + 8, c.max_depth.to_bits());
 }
 
 /// Decodes a [`ModelLayout`] without re-validating it (the host built it with
@@ -376,6 +378,7 @@ pub fn mapping_loss_from_words(w: &[u32], at: usize) -> MappingLoss {
         },
         lambda_depth_prior: fword(w, at + 14),
         depth_prior: fword(w, at + 15),
+        depth_prior_near: fword(w, at + 16),
     }
 }
 
@@ -396,6 +399,7 @@ pub fn mapping_loss_to_words(l: &MappingLoss, w: &mut [u32], at: usize) {
     put(w, at + 13, l.warp.center_beta.to_bits());
     put(w, at + 14, l.lambda_depth_prior.to_bits());
     put(w, at + 15, l.depth_prior.to_bits());
+    put(w, at + 16, l.depth_prior_near.to_bits());
 }
 
 /// Window frame count, image size and slot table from window words at 0.

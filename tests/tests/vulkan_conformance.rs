@@ -529,6 +529,7 @@ fn mapping_steps_match_cpu_bit_for_bit() {
             warp,
             lambda_depth_prior: if step < 2 { 0.5 } else { 0.0 },
             depth_prior: 1.5,
+            depth_prior_near: if step == 1 { 1.0 } else { 0.0 },
         };
         let batch = MapBatch {
             k,
@@ -601,6 +602,7 @@ fn mapping_steps_match_cpu_bit_for_bit() {
             warp: WarpConfig::dim_slam(),
             lambda_depth_prior: 0.0,
             depth_prior: 1.5,
+            depth_prior_near: 0.0,
         },
     };
     assert!(gpu.map_step(&batch, &mut []).is_err());
@@ -662,6 +664,15 @@ fn map_command_on_vulkan_equals_cpu() {
     cfg.mapper.init_iters = 12;
     cfg.mapper.init_color_iters = 6;
     cfg.mapper.depth_prior_iters = 4;
+    // A window of 6 frames: the warping loss runs in one invocation per pixel over every
+    // window frame, and llvmpipe silently cuts the loops of an invocation past 65535
+    // iterations (ARCHITECTURE.md); with the 15-frame window of `small` and a start where
+    // most warp pairs are valid, a pixel's warp loss passes that budget and the software
+    // driver's results differ from the CPU from the 4th iteration on (issue #13: split the
+    // warp pass per view / detect the budget).
+    cfg.mapper.init_frames = 6;
+    cfg.mapper.local_frames = 6;
+    cfg.mapper.window_keyframes = 2;
     cfg.mapper.iters = 2;
     cfg.mapper.pixels = 64;
     cfg.eval.mesh_resolution = 0.3;
@@ -679,6 +690,7 @@ fn map_command_on_vulkan_equals_cpu() {
             backend: backend.into(),
             progress: false,
             preflight: true,
+            stop_after: None,
         };
         let s = himap::mapper_cli::run_map(&opts).unwrap();
         let csv = std::fs::read_to_string(opts.out.join("metrics.csv")).unwrap();
@@ -693,7 +705,8 @@ fn map_command_on_vulkan_equals_cpu() {
     let (sc, rc, mc) = run("cpu");
     let (sg, rg, mg) = run("vulkan");
     assert!(sg.backend.starts_with("vulkan"), "{}", sg.backend);
-    assert_eq!(sc.updates, 2);
+    // init at frame 5, online at 10 and 15, the final update with frame 16
+    assert_eq!(sc.updates, 4);
     assert_eq!((sc.updates, sc.iterations), (sg.updates, sg.iterations));
     assert_eq!(rc, rg, "metrics.csv differs");
     for g in Group::ALL {
