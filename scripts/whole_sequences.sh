@@ -48,7 +48,7 @@ map() {
     echo "running $name" >&2
     local t0=$SECONDS
     # shellcheck disable=SC2086
-    "$HIMAP" map "$data" --out "$OUT/$name" --preset small --threads "$THREADS" --backend cpu \
+    "$HIMAP" map "$data" --out "$OUT/$name" --threads "$THREADS" --backend cpu \
         "$@" $EXTRA >"$OUT/$name.log" 2>&1 || { echo "$name failed, see $OUT/$name.log" >&2; return 0; }
     echo "  $name: $((SECONDS - t0)) s" >&2
 }

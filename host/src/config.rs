@@ -330,7 +330,7 @@ impl Config {
                 grid_init_std: 0.01,
                 sdf_bias_init: 0.3,
                 geo_init: "none".into(),
-                geo_init_radius: 2.0,
+                geo_init_radius: 1.5,
                 geo_init_solid: 0.3,
                 max_depth: 6.0,
                 geo_init_iters: 200,
@@ -384,7 +384,7 @@ impl Config {
                 mesh_samples: 200_000,
                 cull: "auto".into(),
                 final_every: 10,
-                observed_margin: 0.1,
+                observed_margin: 0.15,
             },
         }
     }
@@ -402,8 +402,9 @@ impl Config {
     ///   sharpen to ~12: ICL PSNR 18.9 -> 21.3 dB, SSIM 0.56 -> 0.62, Depth L1 11.9 -> 10.5 cm).
     ///   Our SDF is in metres where the peers' is in truncation units (6-10 cm), so beta 10
     ///   is ten times softer here than in ESLAM / the author's benchmark.
-    /// - `model.geo_init` "sphere" of radius 2 m around the first camera centre (a guess of
-    ///   the room size; see `himap::geo_init`): the random field
+    /// - `model.geo_init` "sphere" around the first camera centre (see `himap::geo_init`),
+    ///   radius 1.5 m, the depth prior's distance (2 m around the mean of all camera centres
+    ///   before mapping became online; see ARCHITECTURE.md): the random field
     ///   with an output bias of 0.3 m renders every unexplored region as fog about 1 m in
     ///   front of the camera. Demo room: Depth L1 96 -> 18 cm, Accuracy 19.4 -> 5.8 cm,
     ///   Completion 18.6 -> 5.9 cm, ratio 10 -> 49 %, PSNR 15.8 -> 19.0 dB.

@@ -1137,8 +1137,8 @@ pub fn map_mesh<B: MapBackend>(
 /// Views of the pushed frames [`observed_views`] renders for the observed region.
 const OBSERVED_VIEWS: usize = 96;
 
-/// Renders the depth of up to `max_views` of `poses` (spread evenly) from the map at an
-/// eighth of `k`'s resolution (at least 16 px wide); a pixel with opacity below 0.5 gets depth
+/// Renders the depth of up to `max_views` of `poses` (spread evenly) from the map at a
+/// quarter of `k`'s resolution (at least 64 px wide); a pixel with opacity below 0.5 gets depth
 /// 0 (nothing seen), others `D / O`.
 pub fn observed_views<B: Backend>(
     backend: &mut B,
@@ -1149,7 +1149,7 @@ pub fn observed_views<B: Backend>(
 where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
-    let w = (k.width / 8).max(16.min(k.width));
+    let w = (k.width / 4).max(64.min(k.width));
     let h = ((k.height as u64 * w as u64) / k.width.max(1) as u64).max(1) as u32;
     let lk = k.resized(w, h);
     let n = poses.len().min(max_views);
