@@ -473,62 +473,20 @@ impl Scene {
                 best_m = &self.walls[face];
             }
         }
-        for b in &self.boxes {
-            let mut t0 = f32::NEG_INFINITY;
-            let mut t1 = f32::INFINITY;
-            let mut axis = 0;
-            let mut ok = true;
-            for k in 0..3 {
-                if d[k] == 0.0 {
-                    if o[k] < b.min[k] || o[k] > b.max[k] {
-                        ok = false;
-                        break;
-                    }
-                    continue;
-                }
-                let inv = 1.0 / d[k];
-                let (mut ta, mut tb) = ((b.min[k] - o[k]) * inv, (b.max[k] - o[k]) * inv);
-                if ta > tb {
-                    core::mem::swap(&mut ta, &mut tb);
-                }
-                if ta > t0 {
-                    t0 = ta;
-                    axis = k;
-                }
-                t1 = t1.min(tb);
-            }
-            if ok && t0 <= t1 && t0 > T_MIN && t0 < best_t {
-                best_t = t0;
-                best_n = [0.0; 3];
-                best_n[axis] = if d[axis] > 0.0 { -1.0 } else { 1.0 };
-                best_m = &b.material;
-            }
-        }
-        for s in &self.spheres {
-            let oc = sub(o, s.center);
-            let a = dot(d, d);
-            let hb = dot(oc, d);
-            let c = dot(oc, oc) - s.radius * s.radius;
-            let disc = hb * hb - a * c;
-            if disc < 0.0 {
-                continue;
-            }
-            let t = (-hb - sqrt(disc)) / a;
-            if t > T_MIN && t < best_t {
-                best_t = t;
-                let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
-                best_n = normalize(sub(p, s.center));
-                best_m = &s.material;
-            }
-        }
-        if best_t.is_finite() && best_t > T_MIN {
-            Some(Hit {
+        let solids = self.boxes.iter().map(|b| (b.min, b.max, &b.material));
+        let spheres = self
+            .spheres
+            .iter()
+            .map(|s| (s.center, s.radius, &s.material));
+        let (best_t, best_n, best_m) =
+            nearest_solid(o, d, solids, spheres, (best_t, best_n, Some(best_m)));
+        match best_m {
+            Some(material) if best_t.is_finite() && best_t > T_MIN => Some(Hit {
                 t: best_t,
                 normal: best_n,
-                material: best_m,
-            })
-        } else {
-            None
+                material,
+            }),
+            _ => None,
         }
     }
 
@@ -539,10 +497,12 @@ impl Scene {
             o[1] + hit.t * d[1],
             o[2] + hit.t * d[2],
         ];
-        let albedo = hit.material.albedo(p);
-        let lambert = dot(hit.normal, self.light_dir).max(0.0);
-        let s = self.ambient + (1.0 - self.ambient) * lambert;
-        albedo.map(|a| (a * s).clamp(0.0, 1.0))
+        lambert(
+            hit.material.albedo(p),
+            hit.normal,
+            self.light_dir,
+            self.ambient,
+        )
     }
 
     /// Renders colour and exact camera-z depth (0 where nothing is hit).
@@ -578,6 +538,73 @@ impl Scene {
         }
         m
     }
+}
+
+/// The nearest hit of `o + t d` (`T_MIN < t < best.0`) on boxes entered from outside and on
+/// spheres, over `best` (t, normal into the free space, material).
+fn nearest_solid<'a>(
+    o: [f32; 3],
+    d: [f32; 3],
+    boxes: impl Iterator<Item = ([f32; 3], [f32; 3], &'a Material)>,
+    spheres: impl Iterator<Item = ([f32; 3], f32, &'a Material)>,
+    best: (f32, [f32; 3], Option<&'a Material>),
+) -> (f32, [f32; 3], Option<&'a Material>) {
+    let (mut best_t, mut best_n, mut best_m) = best;
+    for (min, max, material) in boxes {
+        let mut t0 = f32::NEG_INFINITY;
+        let mut t1 = f32::INFINITY;
+        let mut axis = 0;
+        let mut ok = true;
+        for k in 0..3 {
+            if d[k] == 0.0 {
+                if o[k] < min[k] || o[k] > max[k] {
+                    ok = false;
+                    break;
+                }
+                continue;
+            }
+            let inv = 1.0 / d[k];
+            let (mut ta, mut tb) = ((min[k] - o[k]) * inv, (max[k] - o[k]) * inv);
+            if ta > tb {
+                core::mem::swap(&mut ta, &mut tb);
+            }
+            if ta > t0 {
+                t0 = ta;
+                axis = k;
+            }
+            t1 = t1.min(tb);
+        }
+        if ok && t0 <= t1 && t0 > T_MIN && t0 < best_t {
+            best_t = t0;
+            best_n = [0.0; 3];
+            best_n[axis] = if d[axis] > 0.0 { -1.0 } else { 1.0 };
+            best_m = Some(material);
+        }
+    }
+    for (center, radius, material) in spheres {
+        let oc = sub(o, center);
+        let a = dot(d, d);
+        let hb = dot(oc, d);
+        let c = dot(oc, oc) - radius * radius;
+        let disc = hb * hb - a * c;
+        if disc < 0.0 {
+            continue;
+        }
+        let t = (-hb - sqrt(disc)) / a;
+        if t > T_MIN && t < best_t {
+            best_t = t;
+            let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+            best_n = normalize(sub(p, center));
+            best_m = Some(material);
+        }
+    }
+    (best_t, best_n, best_m)
+}
+
+/// Lambertian shading of `albedo` with normal `n`: `albedo (ambient + (1 - ambient) max(0, n.l))`.
+fn lambert(albedo: [f32; 3], n: [f32; 3], light_dir: [f32; 3], ambient: f32) -> [f32; 3] {
+    let s = ambient + (1.0 - ambient) * dot(n, light_dir).max(0.0);
+    albedo.map(|a| (a * s).clamp(0.0, 1.0))
 }
 
 /// Pushes triangle (a, b, c), reordered so that its normal points along `towards`.

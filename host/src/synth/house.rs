@@ -31,8 +31,8 @@ use himap_core::rng::SplitMix;
 use serde::{Deserialize, Serialize};
 
 use super::{
-    cross, dot, normalize, push_oriented, sub, synth_intrinsics, write_sequence, Material,
-    SceneBox, Sphere, TriMesh, CAMERA_CLEARANCE, T_MIN,
+    cross, dot, lambert, nearest_solid, normalize, push_oriented, sub, synth_intrinsics,
+    write_sequence, Material, SceneBox, Sphere, TriMesh, CAMERA_CLEARANCE,
 };
 use crate::dataset::{DepthImage, RgbImage};
 
@@ -403,61 +403,17 @@ impl House {
 
     /// Nearest surface hit by the ray `o + t d` (t > 1e-4) from free space.
     pub fn intersect(&self, o: [f32; 3], d: [f32; 3]) -> Option<super::Hit<'_>> {
-        let mut best_t = f32::INFINITY;
-        let mut best_n = [0.0; 3];
-        let mut best_m: Option<&Material> = None;
-        for b in &self.solids {
-            let mut t0 = f32::NEG_INFINITY;
-            let mut t1 = f32::INFINITY;
-            let mut axis = 0;
-            let mut ok = true;
-            for k in 0..3 {
-                if d[k] == 0.0 {
-                    if o[k] < b.min[k] || o[k] > b.max[k] {
-                        ok = false;
-                        break;
-                    }
-                    continue;
-                }
-                let inv = 1.0 / d[k];
-                let (mut ta, mut tb) = ((b.min[k] - o[k]) * inv, (b.max[k] - o[k]) * inv);
-                if ta > tb {
-                    core::mem::swap(&mut ta, &mut tb);
-                }
-                if ta > t0 {
-                    t0 = ta;
-                    axis = k;
-                }
-                t1 = t1.min(tb);
-            }
-            if ok && t0 <= t1 && t0 > T_MIN && t0 < best_t {
-                best_t = t0;
-                best_n = [0.0; 3];
-                best_n[axis] = if d[axis] > 0.0 { -1.0 } else { 1.0 };
-                best_m = Some(&b.material);
-            }
-        }
-        for s in &self.spheres {
-            let oc = sub(o, s.center);
-            let a = dot(d, d);
-            let hb = dot(oc, d);
-            let c = dot(oc, oc) - s.radius * s.radius;
-            let disc = hb * hb - a * c;
-            if disc < 0.0 {
-                continue;
-            }
-            let t = (-hb - sqrt(disc)) / a;
-            if t > T_MIN && t < best_t {
-                best_t = t;
-                let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
-                best_n = normalize(sub(p, s.center));
-                best_m = Some(&s.material);
-            }
-        }
-        best_m.map(|material| super::Hit {
-            t: best_t,
-            normal: best_n,
-            material,
+        let solids = self.solids.iter().map(|b| (b.min, b.max, &b.material));
+        let spheres = self
+            .spheres
+            .iter()
+            .map(|s| (s.center, s.radius, &s.material));
+        let (t, normal, material) =
+            nearest_solid(o, d, solids, spheres, (f32::INFINITY, [0.0; 3], None));
+        Some(super::Hit {
+            t,
+            normal,
+            material: material?,
         })
     }
 
@@ -476,10 +432,12 @@ impl House {
                         o[1] + hit.t * d[1],
                         o[2] + hit.t * d[2],
                     ];
-                    let albedo = hit.material.albedo(p);
-                    let lambert = dot(hit.normal, self.light_dir).max(0.0);
-                    let s = self.ambient + (1.0 - self.ambient) * lambert;
-                    let c = albedo.map(|a| (a * s).clamp(0.0, 1.0));
+                    let c = lambert(
+                        hit.material.albedo(p),
+                        hit.normal,
+                        self.light_dir,
+                        self.ambient,
+                    );
                     rgb.data[3 * i..3 * i + 3].copy_from_slice(&c);
                 }
             }
