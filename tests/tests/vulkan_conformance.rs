@@ -667,7 +667,7 @@ fn map_command_on_vulkan_equals_cpu() {
     // A window of 6 frames: the warping loss runs in one invocation per pixel over every
     // window frame, and llvmpipe silently cuts the loops of an invocation past 65535
     // iterations (ARCHITECTURE.md); with the 15-frame window of `small` and a start where
-    // most warp pairs are valid, a pixel's warp loss passes that budget and the software
+    // most warp pairs are valid, a pixel's warp loss most likely passes that budget and the software
     // driver's results differ from the CPU from the 4th iteration on (issue #13: split the
     // warp pass per view / detect the budget).
     cfg.mapper.init_frames = 6;
