@@ -411,16 +411,7 @@ impl Scene {
                 c[k] = lo + (hi - lo) * u();
             }
             c[2] = r + (1.6 - r) * u();
-            let clear = eyes.iter().all(|&e| {
-                let q = sub(e, c);
-                sqrt(dot(q, q)) - r >= CAMERA_CLEARANCE
-            });
-            let apart = boxes.iter().all(|b| box_sdf(c, b.min, b.max) - r >= 0.1)
-                && spheres.iter().all(|s| {
-                    let q = sub(s.center, c);
-                    sqrt(dot(q, q)) - r - s.radius >= 0.1
-                });
-            if clear && apart {
+            if sphere_fits(c, r, &eyes, boxes.iter(), &spheres) {
                 let kind = [0, 1, 3][((u() * 3.0) as usize).min(2)];
                 spheres.push(Sphere {
                     center: c,
@@ -507,19 +498,9 @@ impl Scene {
 
     /// Renders colour and exact camera-z depth (0 where nothing is hit).
     pub fn render(&self, k: &Intrinsics, pose: &Pose) -> (RgbImage, DepthImage) {
-        let mut rgb = RgbImage::new(k.width, k.height);
-        let mut depth = DepthImage::new(k.width, k.height);
-        for v in 0..k.height {
-            for u in 0..k.width {
-                let (o, d) = pose.ray(k, u as f32, v as f32);
-                if let Some(hit) = self.intersect(o, d) {
-                    let i = (v * k.width + u) as usize;
-                    depth.data[i] = hit.t;
-                    rgb.data[3 * i..3 * i + 3].copy_from_slice(&self.shade(o, d, &hit));
-                }
-            }
-        }
-        (rgb, depth)
+        render_view(k, pose, self.light_dir, self.ambient, |o, d| {
+            self.intersect(o, d)
+        })
     }
 
     /// Ground-truth triangle mesh: the inside of the room (normals inward), the boxes (outward;
@@ -599,6 +580,57 @@ fn nearest_solid<'a>(
         }
     }
     (best_t, best_n, best_m)
+}
+
+/// Whether a sphere at `c` of radius `r` keeps [`CAMERA_CLEARANCE`] from every camera centre
+/// in `eyes` and 0.1 m from every box and sphere already placed.
+fn sphere_fits<'a>(
+    c: [f32; 3],
+    r: f32,
+    eyes: &[[f32; 3]],
+    mut boxes: impl Iterator<Item = &'a SceneBox>,
+    spheres: &[Sphere],
+) -> bool {
+    let clear = eyes.iter().all(|&e| {
+        let q = sub(e, c);
+        sqrt(dot(q, q)) - r >= CAMERA_CLEARANCE
+    });
+    clear
+        && boxes.all(|b| box_sdf(c, b.min, b.max) - r >= 0.1)
+        && spheres.iter().all(|s| {
+            let q = sub(s.center, c);
+            sqrt(dot(q, q)) - r - s.radius >= 0.1
+        })
+}
+
+/// Renders colour (Lambertian, see [`lambert`]) and exact camera-z depth (0 where nothing is
+/// hit) of every pixel's ray through `intersect`.
+fn render_view<'a>(
+    k: &Intrinsics,
+    pose: &Pose,
+    light_dir: [f32; 3],
+    ambient: f32,
+    intersect: impl Fn([f32; 3], [f32; 3]) -> Option<Hit<'a>>,
+) -> (RgbImage, DepthImage) {
+    let mut rgb = RgbImage::new(k.width, k.height);
+    let mut depth = DepthImage::new(k.width, k.height);
+    for v in 0..k.height {
+        for u in 0..k.width {
+            let (o, d) = pose.ray(k, u as f32, v as f32);
+            if let Some(hit) = intersect(o, d) {
+                let i = (v * k.width + u) as usize;
+                depth.data[i] = hit.t;
+                let p = [
+                    o[0] + hit.t * d[0],
+                    o[1] + hit.t * d[1],
+                    o[2] + hit.t * d[2],
+                ];
+                let c = lambert(hit.material.albedo(p), hit.normal, light_dir, ambient);
+                rgb.data[3 * i..3 * i + 3].copy_from_slice(&c);
+            }
+        }
+    }
+    (rgb, depth)
 }
 
 /// Lambertian shading of `albedo` with normal `n`: `albedo (ambient + (1 - ambient) max(0, n.l))`.

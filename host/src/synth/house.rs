@@ -31,8 +31,8 @@ use himap_core::rng::SplitMix;
 use serde::{Deserialize, Serialize};
 
 use super::{
-    cross, dot, lambert, nearest_solid, normalize, push_oriented, sub, synth_intrinsics,
-    write_sequence, Material, SceneBox, Sphere, TriMesh, CAMERA_CLEARANCE,
+    cross, dot, nearest_solid, normalize, push_oriented, sub, synth_intrinsics, write_sequence,
+    Material, SceneBox, Sphere, TriMesh, CAMERA_CLEARANCE,
 };
 use crate::dataset::{DepthImage, RgbImage};
 
@@ -354,16 +354,7 @@ impl House {
                     0.1 + r + (w - 0.2 - 2.0 * r) * u(),
                     r + (1.4 - r) * u(),
                 ];
-                let clear = eyes.iter().all(|&e| {
-                    let q = sub(e, c);
-                    sqrt(dot(q, q)) - r >= CAMERA_CLEARANCE
-                });
-                let apart = solids[structure..].iter().all(|b| box_sdf(c, b) - r >= 0.1)
-                    && spheres.iter().all(|s| {
-                        let q = sub(s.center, c);
-                        sqrt(dot(q, q)) - r - s.radius >= 0.1
-                    });
-                if clear && apart {
+                if super::sphere_fits(c, r, &eyes, solids[structure..].iter(), &spheres) {
                     let kind = [0, 1, 3][((u() * 3.0) as usize).min(2)];
                     spheres.push(Sphere {
                         center: c,
@@ -419,30 +410,9 @@ impl House {
 
     /// Renders colour and exact camera-z depth (0 where nothing is hit).
     pub fn render(&self, k: &Intrinsics, pose: &Pose) -> (RgbImage, DepthImage) {
-        let mut rgb = RgbImage::new(k.width, k.height);
-        let mut depth = DepthImage::new(k.width, k.height);
-        for v in 0..k.height {
-            for uu in 0..k.width {
-                let (o, d) = pose.ray(k, uu as f32, v as f32);
-                if let Some(hit) = self.intersect(o, d) {
-                    let i = (v * k.width + uu) as usize;
-                    depth.data[i] = hit.t;
-                    let p = [
-                        o[0] + hit.t * d[0],
-                        o[1] + hit.t * d[1],
-                        o[2] + hit.t * d[2],
-                    ];
-                    let c = lambert(
-                        hit.material.albedo(p),
-                        hit.normal,
-                        self.light_dir,
-                        self.ambient,
-                    );
-                    rgb.data[3 * i..3 * i + 3].copy_from_slice(&c);
-                }
-            }
-        }
-        (rgb, depth)
+        super::render_view(k, pose, self.light_dir, self.ambient, |o, d| {
+            self.intersect(o, d)
+        })
     }
 
     /// The visible surfaces (see the module documentation): box faces in squares of about
