@@ -54,6 +54,27 @@ pub struct MapOptions {
     pub stop_after: Option<usize>,
 }
 
+impl MapOptions {
+    /// Every frame of `dataset` at its size on `threads` CPU threads with `config`: no
+    /// progress output, preflight on, the whole selection mapped.
+    pub fn new(dataset: PathBuf, out: PathBuf, config: Config, threads: usize) -> Self {
+        Self {
+            dataset,
+            out,
+            config,
+            start: 0,
+            end: None,
+            stride: 1,
+            resize: None,
+            threads,
+            backend: "cpu".into(),
+            progress: false,
+            preflight: true,
+            stop_after: None,
+        }
+    }
+}
+
 /// One row of `metrics.csv`.
 #[derive(Clone, Debug, Serialize)]
 pub struct UpdateMetrics {
@@ -1306,18 +1327,9 @@ pub fn run_demo(
     crate::synth::write_synthetic(&data, &synth)
         .with_context(|| format!("writing the synthetic room to {}", data.display()))?;
     let opts = MapOptions {
-        dataset: data,
-        out: root.join("map"),
-        config,
-        start: 0,
-        end: None,
-        stride: 1,
-        resize: None,
-        threads,
         backend: backend.to_string(),
         progress,
-        preflight: true,
-        stop_after: None,
+        ..MapOptions::new(data, root.join("map"), config, threads)
     };
     let s = run_map(&opts)?;
     Ok((s, opts.out))

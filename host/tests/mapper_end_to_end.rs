@@ -199,20 +199,7 @@ fn tiny_room(dir: &std::path::Path) -> std::path::PathBuf {
 }
 
 fn options(data: std::path::PathBuf, out: std::path::PathBuf, config: Config) -> MapOptions {
-    MapOptions {
-        dataset: data,
-        out,
-        config,
-        start: 0,
-        end: None,
-        stride: 1,
-        resize: None,
-        threads: 2,
-        backend: "cpu".into(),
-        progress: false,
-        preflight: true,
-        stop_after: None,
-    }
+    MapOptions::new(data, out, config, 2)
 }
 
 /// A box whose map exceeds the memory budget is refused before anything is allocated or

@@ -49,20 +49,7 @@ fn room(dir: &std::path::Path, name: &str) -> std::path::PathBuf {
 }
 
 fn options(dataset: std::path::PathBuf, out: std::path::PathBuf) -> MapOptions {
-    MapOptions {
-        dataset,
-        out,
-        config: config(),
-        start: 0,
-        end: None,
-        stride: 1,
-        resize: None,
-        threads: 2,
-        backend: "cpu".into(),
-        progress: false,
-        preflight: true,
-        stop_after: None,
-    }
+    MapOptions::new(dataset, out, config(), 2)
 }
 
 /// Replaces the pose of every frame from `from` on in the Replica `traj.txt` by a wildly

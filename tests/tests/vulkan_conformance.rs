@@ -679,18 +679,8 @@ fn map_command_on_vulkan_equals_cpu() {
     cfg.eval.mesh_samples = 500;
     let run = |backend: &str| {
         let opts = himap::mapper_cli::MapOptions {
-            dataset: data.clone(),
-            out: dir.join(backend),
-            config: cfg.clone(),
-            start: 0,
-            end: None,
-            stride: 1,
-            resize: None,
-            threads: 2,
             backend: backend.into(),
-            progress: false,
-            preflight: true,
-            stop_after: None,
+            ..himap::mapper_cli::MapOptions::new(data.clone(), dir.join(backend), cfg.clone(), 2)
         };
         let s = himap::mapper_cli::run_map(&opts).unwrap();
         let csv = std::fs::read_to_string(opts.out.join("metrics.csv")).unwrap();
