@@ -17,3 +17,4 @@ pub mod geo_init;
 pub mod mapper_cli;
 pub mod select;
 pub mod train_demo;
+pub mod warp_check;

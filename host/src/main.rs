@@ -168,6 +168,47 @@ enum Command {
         #[arg(long, default_value = "none")]
         cull: String,
     },
+    /// Diagnostic (reads ground truth): does the warping loss find the true depth? Sweeps the
+    /// loss along the ray of sampled pixels with ground-truth depth (0.5x..2x) in windows of
+    /// consecutive frames and prints how often its minimum is at the truth; with --map, also
+    /// whether the truth scores lower than the map's rendered depth.
+    WarpCheck {
+        /// Dataset folder (with depth).
+        dataset: PathBuf,
+        /// Configuration (warp settings); ignored with --map (the map's own is used).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// A map.safetensors of `himap map` on this dataset.
+        #[arg(long)]
+        map: Option<PathBuf>,
+        #[arg(long)]
+        frames: Option<String>,
+        #[arg(long)]
+        resize: Option<String>,
+        /// Frames per window.
+        #[arg(long, default_value_t = 15)]
+        window: usize,
+        /// Frame step inside a window.
+        #[arg(long, default_value_t = 1)]
+        step: usize,
+        /// Windows spread over the sequence.
+        #[arg(long, default_value_t = 8)]
+        anchors: usize,
+        /// Pixels per window.
+        #[arg(long, default_value_t = 300)]
+        pixels: usize,
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Blur passes (5-tap binomial, sigma 1 px each) over the images first.
+        #[arg(long, default_value_t = 0)]
+        blur: u32,
+        /// Warp with the focal lengths scaled by this (tests whether the colour camera's
+        /// intrinsics differ from the dataset's).
+        #[arg(long, default_value_t = 1.0)]
+        focal_scale: f32,
+    },
     /// Run one training step of a small model on random rays and write every input, output
     /// and gradient to a safetensors file (see the README for the tensor names and formulas).
     DumpStep {
@@ -506,6 +547,56 @@ fn run() -> anyhow::Result<()> {
             };
             let report = himap::eval::run_eval_cli(&mesh, &gt, json.as_deref(), &opts)?;
             println!("{report}");
+        }
+        Command::WarpCheck {
+            dataset,
+            config,
+            map,
+            frames,
+            resize,
+            window,
+            step,
+            anchors,
+            pixels,
+            threads,
+            seed,
+            blur,
+            focal_scale,
+        } => {
+            let config = match config {
+                Some(p) => himap::config::Config::from_file(&p)?,
+                None => himap::config::Config::small(),
+            };
+            let mut load = himap::dataset::LoadOptions::default();
+            if let Some(f) = frames {
+                let (start, end, stride) = parse_frames(&f)?;
+                load.start = start;
+                load.end = end;
+                load.stride = stride;
+            }
+            load.resize = resize.as_deref().map(parse_size).transpose()?;
+            let opts = himap::warp_check::WarpCheckOptions {
+                dataset,
+                load,
+                config,
+                window,
+                step,
+                anchors,
+                pixels,
+                map,
+                threads,
+                seed,
+                blur,
+                focal_scale,
+            };
+            let (rows, total) = himap::warp_check::run(&opts)?;
+            let with_map = opts.map.is_some();
+            println!("{}", himap::warp_check::WarpStats::header(with_map));
+            for r in &rows {
+                println!("{}", r.row(&r.first.to_string()));
+            }
+            println!("{}", total.row("all"));
+            println!("{}", total.basin_line());
         }
         Command::DumpStep {
             out,

@@ -1130,3 +1130,25 @@ fn tum_fixture_converted_from_icl_matches() {
     eprintln!("ICL as TUM: median |dz| frame 0 -> 10: {:.3} mm", dz * 1e3);
     assert!(dz < 2e-3);
 }
+
+#[test]
+fn binomial_blur_hand_values() {
+    // An impulse in a 5x1 image: the horizontal pass gives the taps, the vertical pass (one
+    // row, borders clamped) leaves them.
+    let mut img = RgbImage::new(5, 1);
+    img.data[2 * 3] = 1.0;
+    let b = img.blurred(1);
+    let want = [1.0, 4.0, 6.0, 4.0, 1.0].map(|x| x / 16.0);
+    for (x, w) in want.iter().enumerate() {
+        assert_eq!(b.get(x as u32, 0), [*w, 0.0, 0.0]);
+    }
+    // Clamped borders keep a constant image constant; zero passes are the identity.
+    let mut c = RgbImage::new(4, 3);
+    c.data.iter_mut().for_each(|x| *x = 0.375);
+    assert!(c.blurred(3).data.iter().all(|&x| x == 0.375));
+    assert_eq!(img.blurred(0).data, img.data);
+    // Two passes: the taps convolved with themselves ([1 8 28 56 70 ...] / 256 at the centre).
+    let mut wide = RgbImage::new(9, 1);
+    wide.data[4 * 3 + 1] = 1.0;
+    assert_eq!(wide.blurred(2).get(4, 0)[1], 70.0 / 256.0);
+}
