@@ -225,6 +225,10 @@ pub struct Config {
     pub adam: AdamSection,
     pub scene: SceneSection,
     pub eval: EvalSection,
+    /// How to read the dataset: the colour camera and the depth images' own camera when the
+    /// files' are not right (`[dataset.camera]`, `[dataset.depth_camera]`: width, height, fx,
+    /// fy, cx, cy), depth scale, layout. Empty = what the dataset's files say.
+    pub dataset: crate::dataset::DatasetConfig,
 }
 
 impl Default for Config {
@@ -386,6 +390,7 @@ impl Config {
                 final_every: 10,
                 observed_margin: 0.15,
             },
+            dataset: crate::dataset::DatasetConfig::default(),
         }
     }
 
@@ -778,6 +783,24 @@ mod tests {
         assert_eq!(p.geometry_grid, GridConfig::hi_map_geometry());
         assert_eq!(p.samples, 48);
         assert_eq!(Config::paper().mapper.init_iters, 1500);
+    }
+
+    #[test]
+    fn dataset_cameras_come_from_the_file_and_round_trip() {
+        let text = "[dataset.camera]\nwidth = 640\nheight = 480\nfx = 525.0\nfy = 525.0\n\
+                    cx = 319.5\ncy = 239.5\n[dataset.depth_camera]\nwidth = 640\n\
+                    height = 480\nfx = 585.0\nfy = 585.0\ncx = 320.0\ncy = 240.0\n";
+        let c = Config::from_toml_over(text, &Config::small()).unwrap();
+        let cam = c.dataset.camera.unwrap();
+        assert_eq!((cam.fx, cam.cx, cam.distortion), (525.0, 319.5, None));
+        assert_eq!(c.dataset.depth_camera.unwrap().fx, 585.0);
+        assert_eq!(Config::from_toml(&c.to_toml()).unwrap(), c);
+        // Nothing given: the files decide.
+        assert_eq!(
+            Config::small().dataset,
+            crate::dataset::DatasetConfig::default()
+        );
+        assert!(Config::from_toml_over("[dataset.camera]\nfx = 1.0\n", &Config::small()).is_err());
     }
 
     #[test]

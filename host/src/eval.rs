@@ -110,6 +110,9 @@ pub struct EvalOptions {
     /// With a dataset directory as ground truth, use its `gt_mesh.ply` when present (true)
     /// instead of the back-projected depth.
     pub prefer_gt_mesh: bool,
+    /// How to read a dataset given as ground truth (its cameras, see
+    /// [`crate::dataset::DatasetConfig`]).
+    pub dataset: crate::dataset::DatasetConfig,
 }
 
 impl Default for EvalOptions {
@@ -124,6 +127,7 @@ impl Default for EvalOptions {
             gt_stride: 10,
             voxel_m: 0.01,
             prefer_gt_mesh: true,
+            dataset: crate::dataset::DatasetConfig::default(),
         }
     }
 }
@@ -544,8 +548,12 @@ pub fn eval_report(mesh: &Path, gt: &Path, opts: &EvalOptions) -> anyhow::Result
         // The dataset itself is needed only for a depth ground truth or for culling.
         let ds = if !use_mesh || opts.culling != Culling::None {
             Some(
-                crate::dataset::open(gt, &crate::dataset::LoadOptions::default())
-                    .with_context(|| format!("opening dataset {}", gt.display()))?,
+                crate::dataset::open_with(
+                    gt,
+                    &crate::dataset::LoadOptions::default(),
+                    &opts.dataset,
+                )
+                .with_context(|| format!("opening dataset {}", gt.display()))?,
             )
         } else {
             None

@@ -167,6 +167,10 @@ enum Command {
         /// Culling of the reconstruction by the dataset's cameras: none, frustum, occlusion.
         #[arg(long, default_value = "none")]
         cull: String,
+        /// A configuration whose [dataset] section says how to read the ground-truth dataset
+        /// (its cameras; the one the map was made with).
+        #[arg(long)]
+        config: Option<PathBuf>,
     },
     /// Diagnostic (reads ground truth): does the warping loss find the true depth? Sweeps the
     /// loss along the ray of sampled pixels with ground-truth depth (0.5x..2x) in windows of
@@ -532,6 +536,7 @@ fn run() -> anyhow::Result<()> {
             json,
             samples,
             cull,
+            config,
         } => {
             use himap::eval::{Culling, EvalOptions};
             let culling = match cull.as_str() {
@@ -540,9 +545,14 @@ fn run() -> anyhow::Result<()> {
                 "occlusion" => Culling::FrustumOcclusion,
                 other => anyhow::bail!("unknown culling '{other}': use none, frustum or occlusion"),
             };
+            let dataset = match config {
+                Some(p) => himap::config::Config::from_file(&p)?.dataset,
+                None => Default::default(),
+            };
             let opts = EvalOptions {
                 n_samples: samples,
                 culling,
+                dataset,
                 ..EvalOptions::default()
             };
             let report = himap::eval::run_eval_cli(&mesh, &gt, json.as_deref(), &opts)?;

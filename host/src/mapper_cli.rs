@@ -525,7 +525,7 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         crop_edge: 0,
         load_depth: true,
     };
-    let ds = dataset::open(&opts.dataset, &lo)
+    let ds = dataset::open_with(&opts.dataset, &lo, &opts.config.dataset)
         .with_context(|| format!("opening dataset {}", opts.dataset.display()))?;
     let k = ds.intrinsics();
     let n = ds.len();
@@ -938,6 +938,7 @@ where
         let eo = EvalOptions {
             n_samples: cfg.eval.mesh_samples,
             culling,
+            dataset: cfg.dataset.clone(),
             ..EvalOptions::default()
         };
         match crate::eval::eval_report(&mesh_path, &opts.dataset, &eo) {

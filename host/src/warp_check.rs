@@ -30,7 +30,8 @@ use crate::dataset::{self, LoadOptions};
 pub struct WarpCheckOptions {
     pub dataset: PathBuf,
     pub load: LoadOptions,
-    /// Mapper configuration (warp settings, border); the map's own when `map` is given.
+    /// Mapper configuration (warp settings, border, the dataset's cameras); the map's own
+    /// when `map` is given.
     pub config: Config,
     /// Frames per window.
     pub window: usize,
@@ -206,9 +207,17 @@ impl WarpStats {
 
 /// Runs the check; returns the per-window statistics and the total.
 pub fn run(opts: &WarpCheckOptions) -> anyhow::Result<(Vec<WarpStats>, WarpStats)> {
+    let (config, mut backend) = match &opts.map {
+        Some(p) => {
+            let (cfg, data) = crate::mapper_cli::load_map(p)?;
+            let b = ParallelCpuBackend::new(data, cfg.adam_config(), opts.threads)?;
+            (cfg, Some(b))
+        }
+        None => (opts.config.clone(), None),
+    };
     let mut load = opts.load.clone();
     load.load_depth = true;
-    let ds = dataset::open(&opts.dataset, &load)?;
+    let ds = dataset::open_with(&opts.dataset, &load, &config.dataset)?;
     anyhow::ensure!(
         ds.has_depth(),
         "{}: warp-check needs ground-truth depth",
@@ -222,14 +231,6 @@ pub fn run(opts: &WarpCheckOptions) -> anyhow::Result<(Vec<WarpStats>, WarpStats
         "{} frames selected, a window of {window} frames {step} apart needs {span}",
         ds.len()
     );
-    let (config, mut backend) = match &opts.map {
-        Some(p) => {
-            let (cfg, data) = crate::mapper_cli::load_map(p)?;
-            let b = ParallelCpuBackend::new(data, cfg.adam_config(), opts.threads)?;
-            (cfg, Some(b))
-        }
-        None => (opts.config.clone(), None),
-    };
     let mapper = config.mapper_config()?;
     let wcfg: WarpConfig = mapper.warp;
     let border = mapper.border.max(wcfg.half + 1);

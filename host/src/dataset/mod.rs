@@ -157,6 +157,24 @@ pub struct DepthImage {
 }
 
 impl DepthImage {
+    /// This depth image (taken by camera `from`) resampled into the pixels of camera `to`,
+    /// which shares its centre and orientation: each pixel of `to` takes the nearest pixel of
+    /// `from` on the same ray (z-depth is the same along it), 0 where that falls outside.
+    pub fn registered(&self, from: &Intrinsics, to: &Intrinsics) -> Self {
+        let mut out = DepthImage::new(to.width, to.height);
+        for v in 0..to.height {
+            for u in 0..to.width {
+                let d = to.direction(u as f32, v as f32);
+                let x = (from.fx * d[0] + from.cx).round();
+                let y = (from.fy * d[1] + from.cy).round();
+                if x >= 0.0 && y >= 0.0 && (x as u32) < self.width && (y as u32) < self.height {
+                    out.data[(v * to.width + u) as usize] = self.get(x as u32, y as u32);
+                }
+            }
+        }
+        out
+    }
+
     /// An image with no valid measurement.
     pub fn new(width: u32, height: u32) -> Self {
         Self {
@@ -390,7 +408,14 @@ pub struct DatasetConfig {
     /// Force a layout instead of detecting it.
     pub format: Option<DatasetFormat>,
     /// Camera to use instead of `cam_params.json` / Replica defaults / the freiburg camera.
+    /// It is the **colour** camera: mapping warps colour images through it.
     pub camera: Option<CameraConfig>,
+    /// The depth images' own camera, when depth is not registered to colour (7-Scenes: the
+    /// files give the depth camera, 585 px focal, and the colour camera is about 525). Each
+    /// depth image is resampled into the colour camera's pixels (nearest neighbour, z kept;
+    /// the two cameras are taken to share centre and orientation). Depth is only ground truth
+    /// for evaluation, so this changes no map.
+    pub depth_camera: Option<CameraConfig>,
     /// Depth scale (stored value per metre) to use instead of the detected one.
     pub depth_scale: Option<f32>,
     /// TUM: largest timestamp difference (s) accepted when associating colour, depth and pose.
@@ -404,6 +429,7 @@ impl Default for DatasetConfig {
         Self {
             format: None,
             camera: None,
+            depth_camera: None,
             depth_scale: None,
             tum_max_dt: 0.02,
             undistort: true,
@@ -563,6 +589,9 @@ pub(crate) struct Selection {
     pub resize: Option<(u32, u32)>,
     pub crop: u32,
     pub out: Intrinsics,
+    /// The depth images' own camera when they are not registered to the colour images
+    /// ([`DatasetConfig::depth_camera`]).
+    pub depth_camera: Option<Intrinsics>,
 }
 
 impl Selection {
@@ -624,7 +653,27 @@ impl Selection {
             resize: opts.resize,
             crop: opts.crop_edge,
             out,
+            depth_camera: None,
         })
+    }
+
+    /// Sets the depth images' own camera (checked like any camera; `None` = registered).
+    pub fn with_depth_camera(
+        mut self,
+        root: &Path,
+        camera: Option<&CameraConfig>,
+    ) -> Result<Self, DatasetError> {
+        if let Some(c) = camera {
+            let k = c.intrinsics();
+            check_camera(root, &k)?;
+            self.depth_camera = Some(k);
+        }
+        Ok(self)
+    }
+
+    /// The camera of the depth images on disk.
+    pub fn depth_native(&self) -> &Intrinsics {
+        self.depth_camera.as_ref().unwrap_or(&self.native)
     }
 
     /// Resize and crop a colour image decoded at the native size.
@@ -642,6 +691,10 @@ impl Selection {
 
     /// Resize and crop a depth image decoded at the native size.
     pub fn finish_depth(&self, img: DepthImage) -> DepthImage {
+        let img = match &self.depth_camera {
+            Some(dk) => img.registered(dk, &self.native),
+            None => img,
+        };
         let img = match self.resize {
             Some((w, h)) if (w, h) != (img.width, img.height) => img.resized(w, h),
             _ => img,

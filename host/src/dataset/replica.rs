@@ -260,7 +260,8 @@ impl ReplicaDataset {
                 poses: poses.len(),
             });
         }
-        let sel = Selection::new(root, n, native, opts)?;
+        let sel = Selection::new(root, n, native, opts)?
+            .with_depth_camera(root, cfg.depth_camera.as_ref())?;
 
         let load_depth = opts.load_depth && !depth_map.is_empty();
         let (depths, depth_scale) = if load_depth {
@@ -289,7 +290,7 @@ impl ReplicaDataset {
         let first = sel.indices[0];
         check_image_header(&frames[first], &native)?;
         if load_depth {
-            check_image_header(&depths[first], &native)?;
+            check_image_header(&depths[first], sel.depth_native())?;
         }
         Ok(Self {
             root: root.to_path_buf(),
@@ -340,7 +341,7 @@ impl Dataset for ReplicaDataset {
         let src = self.sel.source(&self.root, i)?;
         let rgb = load_rgb(&self.frames[src], &self.sel.native)?;
         let depth = if self.has_depth() {
-            let d = load_depth(&self.depths[src], self.depth_scale, &self.sel.native)?;
+            let d = load_depth(&self.depths[src], self.depth_scale, self.sel.depth_native())?;
             Some(self.sel.finish_depth(d))
         } else {
             None
@@ -358,7 +359,7 @@ impl Dataset for ReplicaDataset {
         let src = self.sel.source(&self.root, i)?;
         check_image_header(&self.frames[src], &self.sel.native)?;
         if self.has_depth() {
-            check_image_header(&self.depths[src], &self.sel.native)?;
+            check_image_header(&self.depths[src], self.sel.depth_native())?;
         }
         Ok(())
     }

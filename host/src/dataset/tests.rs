@@ -1152,3 +1152,98 @@ fn binomial_blur_hand_values() {
     wide.data[4 * 3 + 1] = 1.0;
     assert_eq!(wide.blurred(2).get(4, 0)[1], 70.0 / 256.0);
 }
+
+#[test]
+fn depth_registered_into_another_camera_hand_values() {
+    // A 4x3 depth camera with focal 2 seen from a colour camera with focal 1 and the same
+    // centre pixel: colour pixel (u, v) looks along ((u - 1.5), (v - 1)) / 1, which the depth
+    // camera sees at 2 * (u - 1.5) + 1.5 (rounded; half-way rounds away from zero).
+    let from = Intrinsics {
+        width: 4,
+        height: 3,
+        fx: 2.0,
+        fy: 2.0,
+        cx: 1.5,
+        cy: 1.0,
+    };
+    let to = Intrinsics {
+        fx: 1.0,
+        fy: 1.0,
+        ..from
+    };
+    let mut d = DepthImage::new(4, 3);
+    for (i, z) in d.data.iter_mut().enumerate() {
+        *z = 1.0 + i as f32;
+    }
+    let r = d.registered(&from, &to);
+    // u = 1 -> 0.5 -> 1 (rounds up), u = 2 -> 2.5 -> 3, u = 0 -> -1.5 outside, u = 3 -> 4.5
+    // outside; v = 1 -> 1, v = 0 -> -1 outside, v = 2 -> 3 outside.
+    let want = [
+        [0.0, 0.0, 0.0, 0.0],
+        [0.0, d.get(1, 1), d.get(3, 1), 0.0],
+        [0.0, 0.0, 0.0, 0.0],
+    ];
+    for v in 0..3 {
+        for u in 0..4 {
+            assert_eq!(r.get(u, v), want[v as usize][u as usize], "({u}, {v})");
+        }
+    }
+    // The same camera is the identity.
+    assert_eq!(d.registered(&from, &from).data, d.data);
+}
+
+#[test]
+fn depth_camera_from_the_configuration_registers_every_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    crate::synth::write_synthetic(
+        dir.path(),
+        &crate::synth::SynthOptions {
+            frames: 3,
+            width: 40,
+            height: 30,
+            seed: 0,
+        },
+    )
+    .unwrap();
+    let plain = open(dir.path(), &LoadOptions::default()).unwrap();
+    let k = plain.intrinsics();
+    // Pretend the files' camera is the depth camera and the colour camera has 0.8 x its
+    // focal length.
+    let depth_camera = CameraConfig {
+        width: k.width,
+        height: k.height,
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        distortion: None,
+    };
+    let colour = CameraConfig {
+        fx: 0.8 * k.fx,
+        fy: 0.8 * k.fy,
+        ..depth_camera
+    };
+    let cfg = DatasetConfig {
+        camera: Some(colour),
+        depth_camera: Some(depth_camera),
+        ..DatasetConfig::default()
+    };
+    let ds = open_with(dir.path(), &LoadOptions::default(), &cfg).unwrap();
+    assert_eq!(ds.intrinsics(), colour.intrinsics());
+    let (a, b) = (plain.frame(1).unwrap(), ds.frame(1).unwrap());
+    assert_eq!(a.rgb.data, b.rgb.data, "colour pixels are the files'");
+    let want = a
+        .depth
+        .unwrap()
+        .registered(&depth_camera.intrinsics(), &colour.intrinsics());
+    assert_eq!(b.depth.unwrap().data, want.data);
+    // A broken depth camera is an error naming the dataset.
+    let bad = DatasetConfig {
+        depth_camera: Some(CameraConfig {
+            fx: -1.0,
+            ..depth_camera
+        }),
+        ..DatasetConfig::default()
+    };
+    assert!(open_with(dir.path(), &LoadOptions::default(), &bad).is_err());
+}

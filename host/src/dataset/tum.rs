@@ -333,7 +333,8 @@ impl TumDataset {
                 ),
             });
         }
-        let sel = Selection::new(root, entries.len(), native, opts)?;
+        let sel = Selection::new(root, entries.len(), native, opts)?
+            .with_depth_camera(root, cfg.depth_camera.as_ref())?;
         for &i in &sel.indices {
             let e = &entries[i];
             for p in std::iter::once(&e.rgb).chain(e.depth.as_ref()) {
@@ -345,7 +346,7 @@ impl TumDataset {
         let first = &entries[sel.indices[0]];
         check_image_header(&first.rgb, &native)?;
         if let Some(d) = &first.depth {
-            check_image_header(d, &native)?;
+            check_image_header(d, sel.depth_native())?;
         }
         let undistort_map = match camera.distortion {
             Some(dist) if cfg.undistort && dist.iter().any(|&x| x != 0.0) => {
@@ -421,7 +422,7 @@ impl Dataset for TumDataset {
             Some(p) => Some(self.sel.finish_depth(load_depth(
                 p,
                 self.depth_scale,
-                &self.sel.native,
+                self.sel.depth_native(),
             )?)),
             None => None,
         };
@@ -439,7 +440,7 @@ impl Dataset for TumDataset {
         let e = &self.entries[src];
         check_image_header(&e.rgb, &self.sel.native)?;
         if let Some(p) = &e.depth {
-            check_image_header(p, &self.sel.native)?;
+            check_image_header(p, self.sel.depth_native())?;
         }
         Ok(())
     }
