@@ -3,6 +3,7 @@
 # frame, with the bars beside the numbers:
 #   icl      ../shared/data/icl-livingroom1, all 211 frames, default scene box (no box given)
 #   7scenes  ../shared/data/7scenes-redkitchen, all 250 frames, scripts/configs/7scenes-redkitchen.toml
+#            (scene box, and the colour camera: the files give the depth camera's intrinsics)
 #   house    `himap synth --scene house` (seed $SEED, 360 frames), default scene box
 #   demo     `himap demo`
 # "worst5" is the worst average Depth L1 of the newest frame over 5 consecutive updates (the
