@@ -81,6 +81,10 @@ pub struct ModelConfig {
     /// A large scene box (a building, the default box around the first camera) otherwise
     /// spreads the samples over tens of metres.
     pub max_depth: f32,
+    /// Early ray termination: compositing stops after the first sample past which the
+    /// transmittance is below this (0 = never; [`render`]'s module docs). The samples behind
+    /// a surface then cost nothing on the CPU (not evaluated) and nothing in any backward.
+    pub min_transmittance: f32,
 }
 
 impl ModelConfig {
@@ -101,6 +105,7 @@ impl ModelConfig {
             grid_init_std: 0.01,
             sdf_bias_init: 0.0,
             max_depth: 0.0,
+            min_transmittance: 0.0,
         }
     }
 }
@@ -677,20 +682,23 @@ pub fn sample_forward<P: ParamRead + ?Sized>(
 }
 
 /// Composites `cache.t/sdf/rgb[0..cache.n]` into `cache.out` (stage 3 of [`ray_forward`]);
-/// `n = 0` renders nothing (all zeros).
+/// `n = 0` renders nothing (all zeros). With early termination
+/// (`ModelConfig::min_transmittance`) `cache.n` becomes the number of samples used, which
+/// the backward then covers.
 #[inline(always)]
 pub fn ray_composite(layout: &ModelLayout, beta: f32, cache: &mut RayCache) {
     if cache.n == 0 {
         cache.out = RayOutput::zeroed();
         return;
     }
-    render::render_forward(
+    cache.n = render::render_forward(
         layout.config.render_mode,
         cache.n,
         &cache.sdf,
         &cache.rgb,
         &cache.t,
         beta,
+        layout.config.min_transmittance,
         &mut cache.out,
     );
 }
@@ -945,14 +953,25 @@ pub fn ray_forward_taped<P: ParamRead + ?Sized, T: SampleTape>(
     tape: &mut T,
 ) {
     let n = ray_samples(layout, ray, ray_id, seed, jitter, &mut cache.t);
-    cache.n = n;
+    // Samples are evaluated only up to where the compositing will stop (the same
+    // transmittance bits as `render_forward`; the GPU evaluates them all, which gives the
+    // same rendering).
+    let (mode, t_min) = (layout.config.render_mode, layout.config.min_transmittance);
+    let mut trans = 1.0f32;
     let mut i = 0;
     while i < n {
         let (sdf, rgb) = tape.forward(layout, params, ray, i, cache.t[i], s);
         cache.sdf[i] = sdf;
         cache.rgb[i] = rgb;
         i += 1;
+        if t_min > 0.0 {
+            trans *= render::transmittance_factor(mode, params.beta, sdf);
+            if trans < t_min {
+                break;
+            }
+        }
     }
+    cache.n = i;
     ray_composite(layout, params.beta, cache);
 }
 
@@ -1186,6 +1205,7 @@ mod tests {
             grid_init_std: 0.2,
             sdf_bias_init: 0.2,
             max_depth: 0.0,
+            min_transmittance: 0.0,
         };
         ModelLayout::new(&cfg).unwrap()
     }
@@ -1362,6 +1382,102 @@ mod tests {
                     "{mode:?} {kind:?}: {missed}/{checked} mismatches"
                 );
             }
+        }
+    }
+
+    /// Early ray termination: evaluating samples one at a time and stopping where the
+    /// compositing stops (the CPU's `ray_forward_taped`) gives the same rendering bits as
+    /// evaluating every sample first (the GPU's passes) and compositing; rays do stop early;
+    /// and the gradient of the cut ray still matches finite differences.
+    #[test]
+    fn early_termination_same_bits_either_way_and_correct_gradient() {
+        for mode in [RenderMode::SdfDensity, RenderMode::Occupancy] {
+            let mut layout = small(mode, crate::grid::GridKind::Factorized);
+            layout.config.min_transmittance = 0.3;
+            let mut p = init(&layout);
+            // A steep field (beta 40): rays that reach negative SDF turn opaque within a
+            // sample or two, the others stay nearly transparent.
+            p[4][0] = 40.0;
+            // A varied field (geometry grid x 20) around 0.25 m: some rays meet "solid" space
+            // at different depths, some none.
+            let gm = &layout.geometry_mlp;
+            let out_bias = gm.bias_offsets[gm.hidden_layers as usize] as usize;
+            p[2][out_bias] = 0.25;
+            p[0].iter_mut().for_each(|x| *x *= 20.0);
+            let params = Params {
+                geometry_grid: &p[0][..],
+                appearance_grid: &p[1][..],
+                geometry_mlp: &p[2][..],
+                appearance_mlp: &p[3][..],
+                beta: p[4][0],
+            };
+            let mut s = SampleScratch::new();
+            let (mut stopped, mut full) = (0, 0);
+            for (i, r) in rays(40).iter().enumerate() {
+                let mut a = RayCache::new();
+                ray_forward(&layout, &params, r, i as u32, 3, true, &mut a, &mut s);
+                let mut b = RayCache::new();
+                b.n = ray_samples(&layout, r, i as u32, 3, true, &mut b.t);
+                let n_all = b.n;
+                for k in 0..b.n {
+                    let (sdf, rgb) = sample_forward(&layout, &params, r, b.t[k], &mut s);
+                    b.sdf[k] = sdf;
+                    b.rgb[k] = rgb;
+                }
+                ray_composite(&layout, params.beta, &mut b);
+                assert_eq!(a.n, b.n, "{mode:?} ray {i}");
+                let bits = |c: &RayCache| {
+                    let o = &c.out;
+                    let mut v = vec![o.depth.to_bits(), o.opacity.to_bits()];
+                    v.extend(o.color.iter().map(|x| x.to_bits()));
+                    v.extend(o.weights.iter().map(|x| x.to_bits()));
+                    v
+                };
+                assert_eq!(bits(&a), bits(&b), "{mode:?} ray {i}");
+                if n_all > 0 {
+                    if a.n < n_all {
+                        stopped += 1;
+                        assert!(a.out.trans[a.n - 1] >= 0.3);
+                        assert!(a.out.weights[a.n..].iter().all(|&w| w == 0.0));
+                    } else {
+                        full += 1;
+                    }
+                }
+            }
+            assert!(
+                stopped >= 5 && full >= 1,
+                "{mode:?}: {stopped} stopped, {full} not"
+            );
+            // Finite differences of the cut ray's loss (away from the cut, the cut point does
+            // not move under small steps; tolerance as the whole-step check).
+            let rays = rays(12);
+            let loss = LossConfig {
+                lambda_color: 1.0,
+                lambda_depth: 0.5,
+                ray_scale: 1.0 / 12.0,
+                color_to_geometry: true,
+                seed: 5,
+            };
+            let (_, grads) = total_loss(&layout, &p, &rays, &loss);
+            let (mut checked, mut missed) = (0, 0);
+            for g in [2usize, 3] {
+                let gmax = grads[g].iter().fold(0.0f64, |m, x| m.max(x.abs()));
+                assert!(gmax > 0.0, "{mode:?}: group {g} has no gradient");
+                let mut idx: Vec<usize> = (0..p[g].len()).collect();
+                idx.sort_by(|&a, &b| grads[g][b].abs().partial_cmp(&grads[g][a].abs()).unwrap());
+                for &i in idx.iter().take(8) {
+                    let h = 1e-3;
+                    let mut pp = p.clone();
+                    pp[g][i] += h;
+                    let (lp, _) = total_loss(&layout, &pp, &rays, &loss);
+                    pp[g][i] -= 2.0 * h;
+                    let (lm, _) = total_loss(&layout, &pp, &rays, &loss);
+                    let fd = (lp - lm) / (2.0 * h as f64);
+                    checked += 1;
+                    missed += ((grads[g][i] - fd).abs() > 1e-2 * gmax + 1e-2 * fd.abs()) as usize;
+                }
+            }
+            assert!(missed * 100 <= checked * 10, "{mode:?}: {missed}/{checked}");
         }
     }
 

@@ -51,6 +51,18 @@
 //! `|s| = 1e4`, `beta = 100` the products that multiply large factors are exact zeros and no
 //! `inf * 0` or `0 / 0` can occur: no NaN for finite inputs.
 //!
+//! # Early ray termination
+//!
+//! With `t_min > 0` the two compositing modes stop after the first sample `k` whose
+//! transmittance past it, `T_{k+1}`, is below `t_min`: samples `k+1..n` get weight 0 and take no
+//! part in the backward either (the suffix sum starts at `k`), so the renderer and its gradient
+//! are those of the ray cut after `k`. [`render_forward`] returns the count it used,
+//! `k + 1` (`n` when it did not stop). The cut-off mass is below `t_min` (at most `t_min` of
+//! colour, depth / `t_far` and opacity); `SdfDirect` never stops (its weights are normalised
+//! over the whole ray). [`transmittance_factor`] gives the factor `T_{i+1} / T_i` with the same
+//! bits, so a caller that evaluates samples one at a time can stop evaluating where the
+//! renderer will stop.
+//!
 //! All kernels here follow the crate's bit-exactness rules: only [`crate::math`], plain
 //! fixed-size arrays, no panics (`n` is clamped to [`MAX_SAMPLES`]).
 
@@ -192,8 +204,23 @@ impl RayOutput {
     }
 }
 
+/// `T_{i+1} / T_i` of a sample with SDF value `sdf`: `exp(-sigma)` in `SdfDensity`,
+/// `sig(beta s)` in `Occupancy` (the bits [`render_forward`] multiplies its transmittance by),
+/// 1 in `SdfDirect`.
+#[inline(always)]
+pub fn transmittance_factor(mode: RenderMode, beta: f32, sdf: f32) -> f32 {
+    match mode {
+        RenderMode::SdfDensity => math::exp(-(beta * math::sigmoid(-beta * sdf))),
+        RenderMode::Occupancy => math::sigmoid(beta * sdf),
+        RenderMode::SdfDirect => 1.0,
+    }
+}
+
 /// Renders one ray: fills `out` from the first `n` samples (`n` clamped to [`MAX_SAMPLES`])
-/// of `sdf`, `rgb` and `t`. Formulas in the module docs.
+/// of `sdf`, `rgb` and `t`, stopping early once the transmittance falls below `t_min` (0 =
+/// never). Returns the number of samples used (formulas and the stopping rule in the module
+/// docs); only `sdf[0..used]`, `rgb[0..used]`, `t[0..used]` are read.
+#[allow(clippy::too_many_arguments)]
 pub fn render_forward(
     mode: RenderMode,
     n: usize,
@@ -201,21 +228,24 @@ pub fn render_forward(
     rgb: &[[f32; 3]; MAX_SAMPLES],
     t: &[f32; MAX_SAMPLES],
     beta: f32,
+    t_min: f32,
     out: &mut RayOutput,
-) {
-    let n = if n > MAX_SAMPLES { MAX_SAMPLES } else { n };
+) -> usize {
+    let mut n = if n > MAX_SAMPLES { MAX_SAMPLES } else { n };
     match mode {
         RenderMode::SdfDensity => {
             let mut trans = 1.0f32;
             let mut i = 0;
             while i < n {
-                let sigma = beta * math::sigmoid(-beta * sdf[i]);
-                let e = math::exp(-sigma);
+                let e = transmittance_factor(mode, beta, sdf[i]);
                 out.alpha[i] = 1.0 - e;
                 out.trans[i] = trans;
                 out.weights[i] = trans * (1.0 - e);
                 trans *= e;
                 i += 1;
+                if trans < t_min {
+                    n = i;
+                }
             }
         }
         RenderMode::SdfDirect => {
@@ -245,8 +275,11 @@ pub fn render_forward(
                 out.alpha[i] = alpha;
                 out.trans[i] = trans;
                 out.weights[i] = trans * alpha;
-                trans *= math::sigmoid(x);
+                trans *= transmittance_factor(mode, beta, sdf[i]);
                 i += 1;
+                if trans < t_min {
+                    n = i;
+                }
             }
         }
     }
@@ -272,6 +305,7 @@ pub fn render_forward(
     out.color = color;
     out.depth = depth;
     out.opacity = opacity;
+    n
 }
 
 /// Backward of [`render_forward`] given its output `fwd` (same `mode`, `n`, inputs and `beta`)
@@ -418,11 +452,127 @@ mod tests {
         (sdf, rgb, t, 2.0)
     }
 
+    /// Early termination on the golden ray: T after sample 0 is exp(-1) = 0.368, so a
+    /// threshold of 0.5 stops after it (the 1-sample ray's bits, sample 1 weightless and
+    /// without gradient) and 0.3 does not (the uncut ray's bits).
+    #[test]
+    fn early_termination_golden() {
+        let (sdf, rgb, t, beta) = golden_ray();
+        let bits = |o: &RayOutput| {
+            let mut v: Vec<u32> = o
+                .weights
+                .iter()
+                .chain(&o.alpha)
+                .chain(&o.trans)
+                .map(|x| x.to_bits())
+                .collect();
+            v.extend([o.depth, o.opacity, o.color[0], o.color[1], o.color[2]].map(f32::to_bits));
+            v
+        };
+        let render = |n: usize, t_min: f32| {
+            let mut out = RayOutput::zeroed();
+            let used = render_forward(
+                RenderMode::SdfDensity,
+                n,
+                &sdf,
+                &rgb,
+                &t,
+                beta,
+                t_min,
+                &mut out,
+            );
+            (used, out)
+        };
+        let (used, cut) = render(2, 0.5);
+        let (one, first) = render(1, 0.0);
+        assert_eq!((used, one), (1, 1));
+        assert_eq!(bits(&cut), bits(&first));
+        assert_eq!(cut.weights[1], 0.0);
+        assert!(close(cut.opacity, 1.0 - (-1.0f64).exp(), 1e-6));
+        let (used, kept) = render(2, 0.3);
+        let (two, whole) = render(2, 0.0);
+        assert_eq!((used, two), (2, 2));
+        assert_eq!(bits(&kept), bits(&whole));
+        // The backward over the used samples leaves the cut one without gradient.
+        let mut d_sdf = [1.0f32; MAX_SAMPLES];
+        let mut d_rgb = [[1.0f32; 3]; MAX_SAMPLES];
+        let mut d_beta = 0.0;
+        render_backward(
+            RenderMode::SdfDensity,
+            1,
+            &sdf,
+            &rgb,
+            &t,
+            beta,
+            &cut,
+            [1.0, 0.5, 0.25],
+            0.5,
+            0.0,
+            true,
+            &mut d_sdf,
+            &mut d_rgb,
+            &mut d_beta,
+        );
+        assert_eq!((d_sdf[1], d_rgb[1]), (0.0, [0.0; 3]));
+        assert!(d_sdf[0] != 0.0);
+        // Occupancy: alpha_0 = sig(0) = 1/2, T_1 = 1/2: 0.6 stops, 0.4 does not.
+        let mut out = RayOutput::zeroed();
+        assert_eq!(
+            render_forward(
+                RenderMode::Occupancy,
+                2,
+                &sdf,
+                &rgb,
+                &t,
+                beta,
+                0.6,
+                &mut out
+            ),
+            1
+        );
+        assert_eq!(
+            render_forward(
+                RenderMode::Occupancy,
+                2,
+                &sdf,
+                &rgb,
+                &t,
+                beta,
+                0.4,
+                &mut out
+            ),
+            2
+        );
+        // SdfDirect never stops.
+        assert_eq!(
+            render_forward(
+                RenderMode::SdfDirect,
+                2,
+                &sdf,
+                &rgb,
+                &t,
+                beta,
+                0.99,
+                &mut out
+            ),
+            2
+        );
+    }
+
     #[test]
     fn golden_two_samples_density() {
         let (sdf, rgb, t, beta) = golden_ray();
         let mut out = RayOutput::zeroed();
-        render_forward(RenderMode::SdfDensity, 2, &sdf, &rgb, &t, beta, &mut out);
+        render_forward(
+            RenderMode::SdfDensity,
+            2,
+            &sdf,
+            &rgb,
+            &t,
+            beta,
+            0.0,
+            &mut out,
+        );
         // sigma = 2 * (1/2, 3/4) = (1, 1.5); alpha = 1 - exp(-sigma) = (0.632121, 0.776870);
         // T = (1, e^-1 = 0.367879); w = (0.632121, 0.367879 * 0.776870 = 0.285794).
         // C = (0.632121, 0.285794, 0.142897); D = 0.632121 + 2 * 0.285794 = 1.203709;
@@ -475,7 +625,16 @@ mod tests {
 
         // Occupancy: alpha = sig(-x) = (0.5, 0.75); T = (1, 0.5); w = (0.5, 0.375);
         // D = 0.5 + 0.75 = 1.25; O = 0.875.
-        render_forward(RenderMode::Occupancy, 2, &sdf, &rgb, &t, beta, &mut out);
+        render_forward(
+            RenderMode::Occupancy,
+            2,
+            &sdf,
+            &rgb,
+            &t,
+            beta,
+            0.0,
+            &mut out,
+        );
         assert!(close(out.weights[0], 0.5, 1e-6) && close(out.weights[1], 0.375, 1e-6));
         assert!(close(out.depth, 1.25, 1e-6) && close(out.opacity, 0.875, 1e-6));
         // L = D = a0 + 2 (1 - a0) a1: dL/da0 = 1 - 2 a1 = -0.5, dL/da1 = 2 (1 - a0) = 1.
@@ -505,7 +664,16 @@ mod tests {
 
         // SdfDirect: b = sig(x) sig(-x) = (0.25, 0.1875); Z = 0.4375 (+1e-8);
         // w = (4/7, 3/7) = (0.571429, 0.428571); D = 4/7 + 6/7 = 10/7 = 1.428571.
-        render_forward(RenderMode::SdfDirect, 2, &sdf, &rgb, &t, beta, &mut out);
+        render_forward(
+            RenderMode::SdfDirect,
+            2,
+            &sdf,
+            &rgb,
+            &t,
+            beta,
+            0.0,
+            &mut out,
+        );
         assert!(close(out.weights[0], 4.0 / 7.0, 1e-6));
         assert!(close(out.weights[1], 3.0 / 7.0, 1e-6));
         assert!(close(out.depth, 10.0 / 7.0, 1e-6) && close(out.opacity, 1.0, 1e-6));
@@ -584,7 +752,7 @@ mod tests {
         with_color: bool,
     ) -> f32 {
         let mut out = RayOutput::zeroed();
-        render_forward(mode, c.n, sdf, rgb, &c.t, beta, &mut out);
+        render_forward(mode, c.n, sdf, rgb, &c.t, beta, 0.0, &mut out);
         let mut l = c.d_depth * out.depth + c.d_opacity * out.opacity;
         if with_color {
             for k in 0..3 {
@@ -612,7 +780,7 @@ mod tests {
                     for seed in 0..3u32 {
                         let c = random_case(n, seed * 7 + n as u32);
                         let mut out = RayOutput::zeroed();
-                        render_forward(mode, n, &c.sdf, &c.rgb, &c.t, beta, &mut out);
+                        render_forward(mode, n, &c.sdf, &c.rgb, &c.t, beta, 0.0, &mut out);
                         let mut ds = [f32::NAN; MAX_SAMPLES];
                         let mut dr = [[f32::NAN; 3]; MAX_SAMPLES];
                         let mut db = f32::NAN;
@@ -682,7 +850,7 @@ mod tests {
         let c = random_case(16, 5);
         for mode in MODES {
             let mut out = RayOutput::zeroed();
-            render_forward(mode, 16, &c.sdf, &c.rgb, &c.t, 10.0, &mut out);
+            render_forward(mode, 16, &c.sdf, &c.rgb, &c.t, 10.0, 0.0, &mut out);
             let run = |dcol: [f32; 3], ctg: bool| {
                 let (mut ds, mut dr, mut db) = ([0.0; MAX_SAMPLES], [[0.0; 3]; MAX_SAMPLES], 0.0);
                 render_backward(
@@ -735,7 +903,7 @@ mod tests {
                         *s = p(i);
                     }
                     let mut out = RayOutput::zeroed();
-                    render_forward(mode, MAX_SAMPLES, &sdf, &rgb, &t, beta, &mut out);
+                    render_forward(mode, MAX_SAMPLES, &sdf, &rgb, &t, beta, 0.0, &mut out);
                     let (mut ds, mut dr, mut db) =
                         ([0.0; MAX_SAMPLES], [[0.0; 3]; MAX_SAMPLES], 0.0);
                     render_backward(
@@ -790,7 +958,7 @@ mod tests {
         let rgb = [[0.2f32; 3]; MAX_SAMPLES];
         for mode in [RenderMode::SdfDensity, RenderMode::Occupancy] {
             let mut out = RayOutput::zeroed();
-            render_forward(mode, 20, &sdf, &rgb, &t, 100.0, &mut out);
+            render_forward(mode, 20, &sdf, &rgb, &t, 100.0, 0.0, &mut out);
             assert!((out.depth - t[10]).abs() < 1e-3, "{mode:?} {}", out.depth);
             assert!((out.opacity - 1.0).abs() < 1e-5);
             assert!((out.color[0] - 0.2).abs() < 1e-5);
@@ -809,6 +977,7 @@ mod tests {
             &c.rgb,
             &c.t,
             10.0,
+            0.0,
             &mut a,
         );
         render_forward(
@@ -818,6 +987,7 @@ mod tests {
             &c.rgb,
             &c.t,
             10.0,
+            0.0,
             &mut b,
         );
         assert_eq!(a.depth.to_bits(), b.depth.to_bits());
@@ -829,6 +999,7 @@ mod tests {
             &c.rgb,
             &c.t,
             10.0,
+            0.0,
             &mut z,
         );
         assert_eq!((z.depth, z.opacity, z.weights[0]), (0.0, 0.0, 0.0));

@@ -79,6 +79,12 @@ pub struct ModelSection {
     pub geo_init_solid: f32,
     /// Farthest sampled depth along a camera ray (m, z-depth; 0 = up to the box exit).
     pub max_depth: f32,
+    /// Early ray termination: a ray's compositing stops once its transmittance is below this
+    /// (0 = never, the presets' default). The samples behind the first surface are then
+    /// neither evaluated on the CPU nor back-propagated on any backend; the cut-off weight is
+    /// below this value. 1e-4 maps whole sequences 1.4-1.9x faster with the same quality on
+    /// ICL, 7-Scenes and the house, but changes the demo room's mesh (ARCHITECTURE.md).
+    pub min_transmittance: f32,
     /// Adam iterations (4096 random points each, lr 0.01) of the sphere fit.
     pub geo_init_iters: u32,
 }
@@ -337,6 +343,7 @@ impl Config {
                 geo_init_radius: 1.5,
                 geo_init_solid: 0.3,
                 max_depth: 6.0,
+                min_transmittance: 0.0,
                 geo_init_iters: 200,
             },
             mapper: MapperSection {
@@ -394,69 +401,19 @@ impl Config {
         }
     }
 
-    /// Sized for a 2-core CPU: geometry 5 levels (64..4 cm; the paper has 6, to 2 cm), appearance 24 / 2 cm (the
-    /// paper's levels) with 16 channels, 48 samples per ray (as `paper`), 300 initialisation iterations,
-    /// 512 pixels, 20 online iterations (the paper's), a cache of 128 keyframes, decoder
-    /// learning rate 1e-3 (measured on
-    /// ICL 320x240, 30 frames: the paper's 1e-5 gives PSNR 12 dB after 300 iterations, 1e-3
-    /// gives 19.5 dB and Depth L1 10.8 cm instead of 25 cm).
+    /// Sized for a 2-core CPU; the paper's model and mapper (`paper`) except:
+    /// - geometry 5 levels, 64..4 cm (the paper has 6, to 2 cm); appearance 24 / 2 cm with 16
+    ///   channels (the paper's levels, 32 channels);
+    /// - 300 initialisation iterations, 512 pixels per iteration, 20 online iterations;
+    /// - decoder learning rate 1e-3 (the paper's 1e-5 barely moves in 300 iterations) and
+    ///   `adam.beta_lr` 0.1 (our SDF is in metres, the peers' in truncation units);
+    /// - `model.geo_init` "sphere" (an inverted 1.5 m sphere around the first camera) with
+    ///   the depth prior of the first 60 iterations and online for collapsed views;
+    /// - online colour weight 0.1 (0.001 sat at Adam's eps) and 75 % of the pixels on the
+    ///   frames new since the last update.
     ///
-    /// Two more departures from the paper, measured on the demo room (60 frames 128x96) and
-    /// ICL (frames 0..30, 320x240), one thread:
-    /// - `adam.beta_lr` 0.1 (1e-3 leaves beta at 10.03 after 330 iterations; 0.1 lets it
-    ///   sharpen to ~12: ICL PSNR 18.9 -> 21.3 dB, SSIM 0.56 -> 0.62, Depth L1 11.9 -> 10.5 cm).
-    ///   Our SDF is in metres where the peers' is in truncation units (6-10 cm), so beta 10
-    ///   is ten times softer here than in ESLAM / the author's benchmark.
-    /// - `model.geo_init` "sphere" around the first camera centre (see `himap::geo_init`),
-    ///   radius 1.5 m, the depth prior's distance (2 m around the mean of all camera centres
-    ///   before mapping became online; see ARCHITECTURE.md): the random field
-    ///   with an output bias of 0.3 m renders every unexplored region as fog about 1 m in
-    ///   front of the camera. Demo room: Depth L1 96 -> 18 cm, Accuracy 19.4 -> 5.8 cm,
-    ///   Completion 18.6 -> 5.9 cm, ratio 10 -> 49 %, PSNR 15.8 -> 19.0 dB.
-    /// - `mapper.lambda_color` 0.1 online instead of 0.001. Online the colour loss reaches
-    ///   only the appearance (detached weights), so the weight changes no geometry; but with
-    ///   the mean over 512 pixels, 0.001 puts the appearance gradients (~1e-8) at the level
-    ///   of Adam's eps and damps their steps. ICL: PSNR 23.5 -> 24.1 dB, SSIM 0.74 -> 0.75,
-    ///   Depth L1 unchanged (8.6 cm).
-    ///
-    /// Also measured on ICL: appearance 6 -> 2 cm PSNR +0.9 dB, SSIM +0.05; online iterations
-    /// 10 -> 20 PSNR +0.4 dB, Depth L1 8.6 -> 8.1 cm. With all of the above, ICL gives PSNR
-    /// 25.0 dB, SSIM 0.81, Depth L1 8.1 cm.
-    ///
-    /// The demo room's mesh metrics vary a lot between these settings (geometry diverges on
-    /// the views of frames 39..49 in most runs): appearance 6 / 2 cm x 10 / 20 online
-    /// iterations gave Accuracy 4.5 / 6.1 / 7.5 / 6.8 cm and ratio 71 / 54 / 46 / 57 %
-    /// (6 cm + 10, 2 cm + 10, 6 cm + 20, 2 cm + 20). The paper's values are kept.
-    ///
-    /// `mapper.new_frame_share` 0.75 (the paper spreads the pixels evenly, which gives the 5
-    /// frames new since the last update 25-31 % of them). Motivated by the newest frame's
-    /// PSNR on ICL falling from 26.6 dB at initialisation to 22.8 dB at frame 29; that drop
-    /// stays (22.9 dB with 0.75), but the means improve a little. Measured, one thread (share 0 / 0.5 / 0.75):
-    /// ICL PSNR 24.99 / 25.02 / 25.13 dB, SSIM 0.806 / 0.808 / 0.814, Depth L1 8.14 / 7.93 /
-    /// 7.81 cm; demo room Accuracy 6.75 / 6.32 / 5.61 cm, Completion 6.36 / 5.60 / 5.86 cm,
-    /// ratio 56.8 / 60.2 / 59.8 %, PSNR 20.6 / 22.3 / 20.8 dB (one run each; the demo room
-    /// is sensitive to any change, see above).
-    ///
-    /// 48 samples per ray (was 24) and a 4 cm geometry level (was 64..8 cm). Over the demo
-    /// room's 3-4 m rays, 24 stratified samples are 15-17 cm apart, coarser than the finest
-    /// geometry cells: walls came out 2-7 cm in front of the truth with +-6 cm of noise.
-    /// Measured on the demo room, one thread (Accuracy / Completion cm / ratio %):
-    ///
-    /// | setting | seed 0 | seed 1 | seed 2 | ms/iteration |
-    /// |---|---|---|---|---|
-    /// | 24 samples, 64..8 cm | 5.61 / 5.86 / 59.8 | | | 155 (2 threads) |
-    /// | 32 samples, 64..8 cm | 4.75 / 4.42 / 69.8 | | | |
-    /// | 24 samples, 64..4 cm | 5.33 / 4.58 / 70.5 | | | |
-    /// | 48 samples, 64..8 cm | 3.95 / 3.83 / 79.2 | 4.38 / 4.19 / 73.5 | 4.69 / 7.35 / 63.0 | |
-    /// | 48 samples, 64..8 cm, 600 init iterations | | | 4.85 / 5.59 / 66.1 | |
-    /// | 48 samples, 64..4 cm | 4.10 / 5.97 / 76.3 | 4.71 / 3.82 / 77.5 | 4.14 / 4.02 / 76.4 | |
-    ///
-    /// (The seed is the configuration's, the room is the same.) The failures are holes in
-    /// the plain ceiling and in a band of a wall at camera height, where the initial sphere
-    /// lies 0.4-0.8 m behind the surface; the 4 cm level fills them in every seed. ICL with
-    /// 48 samples: PSNR 25.13 -> 26.21 dB (64..8 cm) / 26.22 dB (64..4 cm), SSIM 0.814 ->
-    /// 0.853 / 0.855, Depth L1 7.81 -> 6.97 / 7.22 cm. Together they cost about 2.4 times the
-    /// time per iteration.
+    /// Each was measured; the numbers and the runs are in ARCHITECTURE.md ("Mapping quality of
+    /// the `small` preset" and the sections after it).
     pub fn small() -> Self {
         let mut c = Self::paper();
         c.adam.mlp_lr = 1e-3;
@@ -540,6 +497,10 @@ impl Config {
         }
         if !(self.model.geo_init_solid > 0.0 && self.model.geo_init_solid.is_finite()) {
             bail!("model.geo_init_solid must be positive");
+        }
+        let tm = self.model.min_transmittance;
+        if !((0.0..1.0).contains(&tm)) {
+            bail!("model.min_transmittance must be in [0, 1) (0 = no early ray termination)");
         }
         if !(self.model.max_depth >= 0.0 && self.model.max_depth.is_finite()) {
             bail!("model.max_depth must be >= 0 (0 = up to the box exit)");
@@ -649,6 +610,7 @@ impl Config {
             grid_init_std: m.grid_init_std,
             sdf_bias_init: m.sdf_bias_init,
             max_depth: m.max_depth,
+            min_transmittance: m.min_transmittance,
         })
     }
 

@@ -58,8 +58,22 @@ fn bits(v: &[f32]) -> Vec<u32> {
 
 #[test]
 fn parallel_backend_is_bit_identical_to_reference_for_1_2_8_threads() {
-    for mode in [RenderMode::SdfDensity, RenderMode::Occupancy] {
-        let layout = ModelLayout::new(&small_config(mode)).unwrap();
+    // Both rendering modes, and SDF-density with early ray termination (the parallel
+    // backend's forward stops evaluating where the compositing stops; the reference
+    // evaluates every sample and recomputes them in the backward).
+    let cut = {
+        let mut c = small_config(RenderMode::SdfDensity);
+        c.min_transmittance = 0.05;
+        c
+    };
+    let configs = [
+        small_config(RenderMode::SdfDensity),
+        small_config(RenderMode::Occupancy),
+        cut,
+    ];
+    for cfg in configs {
+        let mode = cfg.render_mode;
+        let layout = ModelLayout::new(&cfg).unwrap();
         let data = ModelData::new(layout, 4).unwrap();
         let rays: Vec<_> = (0..STEPS).map(|s| random_rays(200, s as u64)).collect();
         let r = reference(layout, &data, &rays);

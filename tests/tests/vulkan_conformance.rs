@@ -80,7 +80,11 @@ fn result_floats(r: &[RayResult]) -> Vec<f32> {
 /// The small configuration's model (seeded) and a batch of rays, a few of which miss the box
 /// or start outside it.
 fn setup(mode: RenderMode, seed: u32, n_rays: usize) -> (ModelData, Vec<Ray>) {
-    let layout = ModelLayout::new(&small_config(mode)).expect("small config is valid");
+    setup_with(&small_config(mode), seed, n_rays)
+}
+
+fn setup_with(cfg: &ModelConfig, seed: u32, n_rays: usize) -> (ModelData, Vec<Ray>) {
+    let layout = ModelLayout::new(cfg).expect("small config is valid");
     let data = ModelData::new(layout, seed).expect("init");
     let mut rays = random_rays(n_rays, seed as u64 + 100);
     // from outside the box towards it, and away from it (renders nothing)
@@ -209,9 +213,43 @@ fn one_step_occupancy_matches_cpu() {
     one_step(RenderMode::Occupancy);
 }
 
+/// Early ray termination (`ModelConfig::min_transmittance`): the CPU reference stops
+/// evaluating a ray's samples where its compositing stops, the GPU evaluates every sample in
+/// its per-sample pass and composites the same way; the step is the same bits.
+#[test]
+fn one_step_with_early_termination_matches_cpu() {
+    let mut cfg = small_config(RenderMode::SdfDensity);
+    cfg.min_transmittance = 0.05;
+    // The cut must bite: some rays use fewer samples than the uncut field gives them.
+    let (data, rays) = setup_with(&cfg, 5, 200);
+    let uncut = ModelLayout::new(&small_config(RenderMode::SdfDensity)).unwrap();
+    let params = data.view();
+    let mut s = himap_core::model::SampleScratch::new();
+    let (mut a, mut b) = (
+        himap_core::model::RayCache::new(),
+        himap_core::model::RayCache::new(),
+    );
+    let cut = rays
+        .iter()
+        .enumerate()
+        .filter(|(i, r)| {
+            let i = *i as u32;
+            himap_core::model::ray_forward(&data.layout, &params, r, i, 9, true, &mut a, &mut s);
+            himap_core::model::ray_forward(&uncut, &params, r, i, 9, true, &mut b, &mut s);
+            a.n < b.n
+        })
+        .count();
+    assert!(cut >= 20, "only {cut} of {} rays were cut", rays.len());
+    one_step_with(RenderMode::SdfDensity, &cfg);
+}
+
 fn one_step(mode: RenderMode) {
+    one_step_with(mode, &small_config(mode));
+}
+
+fn one_step_with(mode: RenderMode, cfg: &ModelConfig) {
     {
-        let (data, rays) = setup(mode, 5, 200);
+        let (data, rays) = setup_with(cfg, 5, 200);
         let adam = test_adam();
         let Some(mut gpu) = vulkan_or_skip(&data, adam) else {
             return;
