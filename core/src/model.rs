@@ -1266,6 +1266,16 @@ mod tests {
         }
     }
 
+    fn params_of(p: &[Vec<f32>; NUM_GROUPS]) -> Params<'_, [f32]> {
+        Params {
+            geometry_grid: &p[0][..],
+            appearance_grid: &p[1][..],
+            geometry_mlp: &p[2][..],
+            appearance_mlp: &p[3][..],
+            beta: p[4][0],
+        }
+    }
+
     /// Total loss over the batch (f64 sum of per-ray f32 losses).
     fn total_loss(
         layout: &ModelLayout,
@@ -1273,13 +1283,7 @@ mod tests {
         rays: &[Ray],
         loss: &LossConfig,
     ) -> (f64, [Vec<f64>; NUM_GROUPS]) {
-        let params = Params {
-            geometry_grid: &p[0][..],
-            appearance_grid: &p[1][..],
-            geometry_mlp: &p[2][..],
-            appearance_mlp: &p[3][..],
-            beta: p[4][0],
-        };
+        let params = params_of(p);
         let mut sink = F64Sink {
             g: core::array::from_fn(|g| vec![0.0; p[g].len()]),
         };
@@ -1404,13 +1408,7 @@ mod tests {
             let out_bias = gm.bias_offsets[gm.hidden_layers as usize] as usize;
             p[2][out_bias] = 0.25;
             p[0].iter_mut().for_each(|x| *x *= 20.0);
-            let params = Params {
-                geometry_grid: &p[0][..],
-                appearance_grid: &p[1][..],
-                geometry_mlp: &p[2][..],
-                appearance_mlp: &p[3][..],
-                beta: p[4][0],
-            };
+            let params = params_of(&p);
             let mut s = SampleScratch::new();
             let (mut stopped, mut full) = (0, 0);
             for (i, r) in rays(40).iter().enumerate() {

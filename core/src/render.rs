@@ -516,47 +516,14 @@ mod tests {
         assert_eq!((d_sdf[1], d_rgb[1]), (0.0, [0.0; 3]));
         assert!(d_sdf[0] != 0.0);
         // Occupancy: alpha_0 = sig(0) = 1/2, T_1 = 1/2: 0.6 stops, 0.4 does not.
-        let mut out = RayOutput::zeroed();
-        assert_eq!(
-            render_forward(
-                RenderMode::Occupancy,
-                2,
-                &sdf,
-                &rgb,
-                &t,
-                beta,
-                0.6,
-                &mut out
-            ),
-            1
-        );
-        assert_eq!(
-            render_forward(
-                RenderMode::Occupancy,
-                2,
-                &sdf,
-                &rgb,
-                &t,
-                beta,
-                0.4,
-                &mut out
-            ),
-            2
-        );
+        let used = |mode: RenderMode, t_min: f32| {
+            let mut out = RayOutput::zeroed();
+            render_forward(mode, 2, &sdf, &rgb, &t, beta, t_min, &mut out)
+        };
+        assert_eq!(used(RenderMode::Occupancy, 0.6), 1);
+        assert_eq!(used(RenderMode::Occupancy, 0.4), 2);
         // SdfDirect never stops.
-        assert_eq!(
-            render_forward(
-                RenderMode::SdfDirect,
-                2,
-                &sdf,
-                &rgb,
-                &t,
-                beta,
-                0.99,
-                &mut out
-            ),
-            2
-        );
+        assert_eq!(used(RenderMode::SdfDirect, 0.99), 2);
     }
 
     #[test]

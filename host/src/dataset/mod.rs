@@ -339,6 +339,19 @@ pub struct CameraConfig {
 }
 
 impl CameraConfig {
+    /// The camera of `k`, without distortion.
+    pub fn pinhole(k: &Intrinsics) -> Self {
+        Self {
+            width: k.width,
+            height: k.height,
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            distortion: None,
+        }
+    }
+
     /// The pinhole part.
     pub fn intrinsics(&self) -> Intrinsics {
         Intrinsics {

@@ -695,15 +695,7 @@ fn tum_fixture(name: &str, n: usize) -> (tempfile::TempDir, PathBuf) {
 fn fixture_camera_config() -> DatasetConfig {
     let k = fixture_camera();
     DatasetConfig {
-        camera: Some(CameraConfig {
-            width: k.width,
-            height: k.height,
-            fx: k.fx,
-            fy: k.fy,
-            cx: k.cx,
-            cy: k.cy,
-            distortion: None,
-        }),
+        camera: Some(CameraConfig::pinhole(&k)),
         ..Default::default()
     }
 }
@@ -1095,15 +1087,7 @@ fn tum_fixture_converted_from_icl_matches() {
 
     let k = icl.intrinsics();
     let cfg = DatasetConfig {
-        camera: Some(CameraConfig {
-            width: k.width,
-            height: k.height,
-            fx: k.fx,
-            fy: k.fy,
-            cx: k.cx,
-            cy: k.cy,
-            distortion: None,
-        }),
+        camera: Some(CameraConfig::pinhole(&k)),
         ..Default::default()
     };
     let tum = open_with(&root, &LoadOptions::default(), &cfg).unwrap();
@@ -1209,15 +1193,7 @@ fn depth_camera_from_the_configuration_registers_every_frame() {
     let k = plain.intrinsics();
     // Pretend the files' camera is the depth camera and the colour camera has 0.8 x its
     // focal length.
-    let depth_camera = CameraConfig {
-        width: k.width,
-        height: k.height,
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        distortion: None,
-    };
+    let depth_camera = CameraConfig::pinhole(&k);
     let colour = CameraConfig {
         fx: 0.8 * k.fx,
         fy: 0.8 * k.fy,
