@@ -1266,6 +1266,17 @@ mod tests {
         }
     }
 
+    /// The finite-difference checks' loss: colour and depth L1, mean over `n` rays.
+    fn fd_loss(n: usize) -> LossConfig {
+        LossConfig {
+            lambda_color: 1.0,
+            lambda_depth: 0.5,
+            ray_scale: 1.0 / n as f32,
+            color_to_geometry: true,
+            seed: 5,
+        }
+    }
+
     fn params_of(p: &[Vec<f32>; NUM_GROUPS]) -> Params<'_, [f32]> {
         Params {
             geometry_grid: &p[0][..],
@@ -1333,13 +1344,7 @@ mod tests {
                 let layout = small(mode, kind);
                 let p = init(&layout);
                 let rays = rays(24);
-                let loss = LossConfig {
-                    lambda_color: 1.0,
-                    lambda_depth: 0.5,
-                    ray_scale: 1.0 / 24.0,
-                    color_to_geometry: true,
-                    seed: 5,
-                };
+                let loss = fd_loss(24);
                 let (_, grads) = total_loss(&layout, &p, &rays, &loss);
                 let mut pick = SplitMix::new(9);
                 let (mut checked, mut missed) = (0, 0);
@@ -1449,13 +1454,7 @@ mod tests {
             // Finite differences of the cut ray's loss (away from the cut, the cut point does
             // not move under small steps; tolerance as the whole-step check).
             let rays = rays(12);
-            let loss = LossConfig {
-                lambda_color: 1.0,
-                lambda_depth: 0.5,
-                ray_scale: 1.0 / 12.0,
-                color_to_geometry: true,
-                seed: 5,
-            };
+            let loss = fd_loss(12);
             let (_, grads) = total_loss(&layout, &p, &rays, &loss);
             let (mut checked, mut missed) = (0, 0);
             for g in [2usize, 3] {
