@@ -1266,6 +1266,24 @@ mod tests {
         }
     }
 
+    /// `(L(p + h e) - L(p - h e)) / 2h` for parameter `i` of group `g`.
+    fn central_difference(
+        layout: &ModelLayout,
+        p: &[Vec<f32>; NUM_GROUPS],
+        rays: &[Ray],
+        loss: &LossConfig,
+        g: usize,
+        i: usize,
+        h: f32,
+    ) -> f64 {
+        let mut pp = p.clone();
+        pp[g][i] += h;
+        let (lp, _) = total_loss(layout, &pp, rays, loss);
+        pp[g][i] -= 2.0 * h;
+        let (lm, _) = total_loss(layout, &pp, rays, loss);
+        (lp - lm) / (2.0 * h as f64)
+    }
+
     /// The finite-difference checks' loss: colour and depth L1, mean over `n` rays.
     fn fd_loss(n: usize) -> LossConfig {
         LossConfig {
@@ -1366,12 +1384,7 @@ mod tests {
                         _ => 1e-2,
                     };
                     for &i in &idx {
-                        let mut pp = p.clone();
-                        pp[g][i] += h;
-                        let (lp, _) = total_loss(&layout, &pp, &rays, &loss);
-                        pp[g][i] -= 2.0 * h;
-                        let (lm, _) = total_loss(&layout, &pp, &rays, &loss);
-                        let fd = (lp - lm) / (2.0 * h as f64);
+                        let fd = central_difference(&layout, &p, &rays, &loss, g, i, h);
                         let a = grads[g][i];
                         checked += 1;
                         if (a - fd).abs() > 1e-2 * gmax + 1e-2 * fd.abs() {
@@ -1463,13 +1476,7 @@ mod tests {
                 let mut idx: Vec<usize> = (0..p[g].len()).collect();
                 idx.sort_by(|&a, &b| grads[g][b].abs().partial_cmp(&grads[g][a].abs()).unwrap());
                 for &i in idx.iter().take(8) {
-                    let h = 1e-3;
-                    let mut pp = p.clone();
-                    pp[g][i] += h;
-                    let (lp, _) = total_loss(&layout, &pp, &rays, &loss);
-                    pp[g][i] -= 2.0 * h;
-                    let (lm, _) = total_loss(&layout, &pp, &rays, &loss);
-                    let fd = (lp - lm) / (2.0 * h as f64);
+                    let fd = central_difference(&layout, &p, &rays, &loss, g, i, 1e-3);
                     checked += 1;
                     missed += ((grads[g][i] - fd).abs() > 1e-2 * gmax + 1e-2 * fd.abs()) as usize;
                 }

@@ -229,17 +229,7 @@ impl CameraPath {
             0.0,
             self.target_height + self.target_amp * sin(2.0 * TAU * s + self.target_phase),
         ];
-        let f = normalize(sub(target, eye));
-        // x (right) = forward x up; y (down) = forward x right; z = forward.
-        let r = normalize(cross(f, [0.0, 0.0, 1.0]));
-        let d = cross(f, r);
-        Pose {
-            m: [
-                [r[0], d[0], f[0], eye[0]],
-                [r[1], d[1], f[1], eye[1]],
-                [r[2], d[2], f[2], eye[2]],
-            ],
-        }
+        look_pose(eye, normalize(sub(target, eye)))
     }
 }
 
@@ -291,6 +281,20 @@ fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
         a[2] * b[0] - a[0] * b[2],
         a[0] * b[1] - a[1] * b[0],
     ]
+}
+
+/// The camera-to-world pose at `eye` looking along the unit vector `f`, world z up: x (right)
+/// = forward x up, y (down) = forward x right, z = forward (OpenCV axes).
+fn look_pose(eye: [f32; 3], f: [f32; 3]) -> Pose {
+    let r = normalize(cross(f, [0.0, 0.0, 1.0]));
+    let d = cross(f, r);
+    Pose {
+        m: [
+            [r[0], d[0], f[0], eye[0]],
+            [r[1], d[1], f[1], eye[1]],
+            [r[2], d[2], f[2], eye[2]],
+        ],
+    }
 }
 
 fn normalize(a: [f32; 3]) -> [f32; 3] {

@@ -31,7 +31,7 @@ use himap_core::rng::SplitMix;
 use serde::{Deserialize, Serialize};
 
 use super::{
-    cross, dot, nearest_solid, normalize, push_oriented, sub, synth_intrinsics, write_sequence,
+    dot, look_pose, nearest_solid, normalize, push_oriented, sub, synth_intrinsics, write_sequence,
     Material, SceneBox, Sphere, TriMesh, CAMERA_CLEARANCE,
 };
 use crate::dataset::{DepthImage, RgbImage};
@@ -141,16 +141,7 @@ impl HousePath {
         let h = [cy * t[0] - sy * t[1], sy * t[0] + cy * t[1]];
         let p = self.pitch_center + self.pitch_amp * sin(TAU * self.pitch_cycles * s + 1.0);
         let (cp, sp) = (cos(p), sin(p));
-        let f = [cp * h[0], cp * h[1], sp];
-        let r = normalize(cross(f, [0.0, 0.0, 1.0]));
-        let d = cross(f, r);
-        Pose {
-            m: [
-                [r[0], d[0], f[0], eye[0]],
-                [r[1], d[1], f[1], eye[1]],
-                [r[2], d[2], f[2], eye[2]],
-            ],
-        }
+        look_pose(eye, [cp * h[0], cp * h[1], sp])
     }
 
     /// Length of the walk (m), summed over `steps` chords.
