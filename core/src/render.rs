@@ -432,6 +432,24 @@ mod tests {
         ((a as f64) - b).abs() <= tol
     }
 
+    /// `render_backward` over the first `n` samples of [`golden_ray`] (colour attached, no
+    /// opacity cotangent), into buffers filled with 1 beforehand (so a missed write shows).
+    fn golden_backward(
+        mode: RenderMode,
+        n: usize,
+        out: &RayOutput,
+        d_color: [f32; 3],
+        d_depth: f32,
+    ) -> ([f32; MAX_SAMPLES], [[f32; 3]; MAX_SAMPLES], f32) {
+        let (sdf, rgb, t, beta) = golden_ray();
+        let (mut ds, mut dr, mut db) = ([1.0; MAX_SAMPLES], [[1.0; 3]; MAX_SAMPLES], 1.0);
+        render_backward(
+            mode, n, &sdf, &rgb, &t, beta, out, d_color, d_depth, 0.0, true, &mut ds, &mut dr,
+            &mut db,
+        );
+        (ds, dr, db)
+    }
+
     /// The 2-sample golden ray: beta = 2, s = (0, -ln(3)/2), so beta s = (0, -ln 3) and
     /// sig(-beta s) = (1/2, 3/4), sig(beta s) = (1/2, 1/4). t = (1, 2),
     /// c_0 = (1, 0, 0), c_1 = (0, 1, 0.5).
@@ -494,25 +512,8 @@ mod tests {
         assert_eq!((used, two), (2, 2));
         assert_eq!(bits(&kept), bits(&whole));
         // The backward over the used samples leaves the cut one without gradient.
-        let mut d_sdf = [1.0f32; MAX_SAMPLES];
-        let mut d_rgb = [[1.0f32; 3]; MAX_SAMPLES];
-        let mut d_beta = 0.0;
-        render_backward(
-            RenderMode::SdfDensity,
-            1,
-            &sdf,
-            &rgb,
-            &t,
-            beta,
-            &cut,
-            [1.0, 0.5, 0.25],
-            0.5,
-            0.0,
-            true,
-            &mut d_sdf,
-            &mut d_rgb,
-            &mut d_beta,
-        );
+        let (d_sdf, d_rgb, _) =
+            golden_backward(RenderMode::SdfDensity, 1, &cut, [1.0, 0.5, 0.25], 0.5);
         assert_eq!((d_sdf[1], d_rgb[1]), (0.0, [0.0; 3]));
         assert!(d_sdf[0] != 0.0);
         // Occupancy: alpha_0 = sig(0) = 1/2, T_1 = 1/2: 0.6 stops, 0.4 does not.
@@ -561,23 +562,7 @@ mod tests {
         // dsigma/ds = -beta^2 sig(-x) sig(x) = (-1, -0.75): d_s = (0.203709, -0.123127).
         // dsigma/dbeta = sig(-x) - x sig(-x) sig(x) = (0.5, 0.75 + ln3 * 0.1875 = 0.955990):
         // d_beta = -0.203709 * 0.5 + 0.164170 * 0.955990 = 0.055090.
-        let (mut ds, mut dr, mut db) = ([0.0; MAX_SAMPLES], [[0.0; 3]; MAX_SAMPLES], 0.0);
-        render_backward(
-            RenderMode::SdfDensity,
-            2,
-            &sdf,
-            &rgb,
-            &t,
-            beta,
-            &out,
-            [0.0; 3],
-            1.0,
-            0.0,
-            true,
-            &mut ds,
-            &mut dr,
-            &mut db,
-        );
+        let (ds, dr, db) = golden_backward(RenderMode::SdfDensity, 2, &out, [0.0; 3], 1.0);
         assert!(close(ds[0], 0.203709, 2e-6), "{}", ds[0]);
         assert!(close(ds[1], -0.123127, 2e-6), "{}", ds[1]);
         assert!(close(db, 0.055090, 2e-6), "{db}");
@@ -588,7 +573,6 @@ mod tests {
     fn golden_two_samples_occupancy_and_direct() {
         let (sdf, rgb, t, beta) = golden_ray();
         let mut out = RayOutput::zeroed();
-        let (mut ds, mut dr, mut db) = ([0.0; MAX_SAMPLES], [[0.0; 3]; MAX_SAMPLES], 0.0);
 
         // Occupancy: alpha = sig(-x) = (0.5, 0.75); T = (1, 0.5); w = (0.5, 0.375);
         // D = 0.5 + 0.75 = 1.25; O = 0.875.
@@ -607,22 +591,7 @@ mod tests {
         // L = D = a0 + 2 (1 - a0) a1: dL/da0 = 1 - 2 a1 = -0.5, dL/da1 = 2 (1 - a0) = 1.
         // dalpha/ds = -beta sig(-x) sig(x) = (-0.5, -0.375): d_s = (0.25, -0.375).
         // dalpha/dbeta = -s sig(-x) sig(x) = (0, 0.549306 * 0.1875 = 0.102995): d_beta = 0.102995.
-        render_backward(
-            RenderMode::Occupancy,
-            2,
-            &sdf,
-            &rgb,
-            &t,
-            beta,
-            &out,
-            [0.0; 3],
-            1.0,
-            0.0,
-            true,
-            &mut ds,
-            &mut dr,
-            &mut db,
-        );
+        let (ds, _, db) = golden_backward(RenderMode::Occupancy, 2, &out, [0.0; 3], 1.0);
         assert!(
             close(ds[0], 0.25, 1e-6) && close(ds[1], -0.375, 1e-6),
             "{ds:?}"
@@ -650,22 +619,7 @@ mod tests {
         // d_s = (0, 64/49 * 0.1875 = 0.244898).
         // db/dbeta = s b (sig(-x) - sig(x)) = (0, -0.549306 * 0.09375 = -0.051497):
         // d_beta = 64/49 * -0.051497 = -0.067261.
-        render_backward(
-            RenderMode::SdfDirect,
-            2,
-            &sdf,
-            &rgb,
-            &t,
-            beta,
-            &out,
-            [0.0; 3],
-            1.0,
-            0.0,
-            true,
-            &mut ds,
-            &mut dr,
-            &mut db,
-        );
+        let (ds, _, db) = golden_backward(RenderMode::SdfDirect, 2, &out, [0.0; 3], 1.0);
         assert!(
             close(ds[0], 0.0, 1e-6) && close(ds[1], 0.244898, 1e-6),
             "{ds:?}"
