@@ -432,6 +432,14 @@ mod tests {
         ((a as f64) - b).abs() <= tol
     }
 
+    /// `render_forward` of both samples of [`golden_ray`] (no early termination).
+    fn golden_forward(mode: RenderMode) -> RayOutput {
+        let (sdf, rgb, t, beta) = golden_ray();
+        let mut out = RayOutput::zeroed();
+        render_forward(mode, 2, &sdf, &rgb, &t, beta, 0.0, &mut out);
+        out
+    }
+
     /// `render_backward` over the first `n` samples of [`golden_ray`] (colour attached, no
     /// opacity cotangent), into buffers filled with 1 beforehand (so a missed write shows).
     fn golden_backward(
@@ -529,18 +537,7 @@ mod tests {
 
     #[test]
     fn golden_two_samples_density() {
-        let (sdf, rgb, t, beta) = golden_ray();
-        let mut out = RayOutput::zeroed();
-        render_forward(
-            RenderMode::SdfDensity,
-            2,
-            &sdf,
-            &rgb,
-            &t,
-            beta,
-            0.0,
-            &mut out,
-        );
+        let out = golden_forward(RenderMode::SdfDensity);
         // sigma = 2 * (1/2, 3/4) = (1, 1.5); alpha = 1 - exp(-sigma) = (0.632121, 0.776870);
         // T = (1, e^-1 = 0.367879); w = (0.632121, 0.367879 * 0.776870 = 0.285794).
         // C = (0.632121, 0.285794, 0.142897); D = 0.632121 + 2 * 0.285794 = 1.203709;
@@ -571,21 +568,9 @@ mod tests {
 
     #[test]
     fn golden_two_samples_occupancy_and_direct() {
-        let (sdf, rgb, t, beta) = golden_ray();
-        let mut out = RayOutput::zeroed();
-
         // Occupancy: alpha = sig(-x) = (0.5, 0.75); T = (1, 0.5); w = (0.5, 0.375);
         // D = 0.5 + 0.75 = 1.25; O = 0.875.
-        render_forward(
-            RenderMode::Occupancy,
-            2,
-            &sdf,
-            &rgb,
-            &t,
-            beta,
-            0.0,
-            &mut out,
-        );
+        let out = golden_forward(RenderMode::Occupancy);
         assert!(close(out.weights[0], 0.5, 1e-6) && close(out.weights[1], 0.375, 1e-6));
         assert!(close(out.depth, 1.25, 1e-6) && close(out.opacity, 0.875, 1e-6));
         // L = D = a0 + 2 (1 - a0) a1: dL/da0 = 1 - 2 a1 = -0.5, dL/da1 = 2 (1 - a0) = 1.
@@ -600,16 +585,7 @@ mod tests {
 
         // SdfDirect: b = sig(x) sig(-x) = (0.25, 0.1875); Z = 0.4375 (+1e-8);
         // w = (4/7, 3/7) = (0.571429, 0.428571); D = 4/7 + 6/7 = 10/7 = 1.428571.
-        render_forward(
-            RenderMode::SdfDirect,
-            2,
-            &sdf,
-            &rgb,
-            &t,
-            beta,
-            0.0,
-            &mut out,
-        );
+        let out = golden_forward(RenderMode::SdfDirect);
         assert!(close(out.weights[0], 4.0 / 7.0, 1e-6));
         assert!(close(out.weights[1], 3.0 / 7.0, 1e-6));
         assert!(close(out.depth, 10.0 / 7.0, 1e-6) && close(out.opacity, 1.0, 1e-6));
