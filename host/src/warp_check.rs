@@ -348,11 +348,15 @@ pub fn run(opts: &WarpCheckOptions) -> anyhow::Result<(Vec<WarpStats>, WarpStats
             st.rel_err.push(rel);
             st.within5 += (rel <= 0.05) as usize;
             st.within10 += (rel <= 0.10) as usize;
-            let lo = loss_at(src, u, v, gt * 0.8);
-            let hi = loss_at(src, u, v, gt * 1.25);
-            st.basin += (lo.d_depth < 0.0 && hi.d_depth > 0.0) as usize;
+            // The basin uses the gradients at 0.8 gt and 1.25 gt, two of the scales below.
+            let (mut lo, mut hi) = (0.0f32, 0.0f32);
             for (j, &s) in BASIN_SCALES.iter().enumerate() {
                 let r = loss_at(src, u, v, gt * s);
+                if s == 0.8 {
+                    lo = r.d_depth;
+                } else if s == 1.25 {
+                    hi = r.d_depth;
+                }
                 let towards = if s < 1.0 {
                     r.d_depth < 0.0
                 } else {
@@ -360,6 +364,7 @@ pub fn run(opts: &WarpCheckOptions) -> anyhow::Result<(Vec<WarpStats>, WarpStats
                 };
                 st.towards[j] += (r.valid_views >= wcfg.min_views && towards) as usize;
             }
+            st.basin += (lo < 0.0 && hi > 0.0) as usize;
             let c = warp_pixel(&centre_cfg, &k, &poses[..], window, src, u, v, gt, &images);
             st.centre_residual += c.loss as f64 / c.valid_views.max(1) as f64;
             if let Some(r) = &rendered {
