@@ -93,6 +93,46 @@ pub fn adam_update(s: &AdamStep, param: &mut f32, m: &mut f32, v: &mut f32, grad
     *v = v_new;
 }
 
+/// `x` is neither infinite nor NaN (`x - x` is 0 only for finite values; plain arithmetic, so
+/// the same test compiles on every target, shaders included).
+#[inline]
+#[allow(clippy::eq_op)]
+pub fn is_finite(x: f32) -> bool {
+    x - x == 0.0
+}
+
+/// Whether [`adam_update`] would leave the parameter and both moments finite. Computed on
+/// copies: nothing is written (the check pass before a step is applied).
+#[inline]
+pub fn adam_update_is_finite(s: &AdamStep, param: f32, m: f32, v: f32, grad: f32) -> bool {
+    let (mut p, mut m, mut v) = (param, m, v);
+    adam_update(s, &mut p, &mut m, &mut v, grad);
+    is_finite(p) && is_finite(m) && is_finite(v)
+}
+
+/// [`adam_update_is_finite`] over a whole group (lengths as [`adam_update_fixed`]'s; a
+/// mismatch reads as not finite).
+pub fn adam_group_is_finite(
+    s: &AdamStep,
+    params: &[f32],
+    m: &[f32],
+    v: &[f32],
+    grads: &[i64],
+) -> bool {
+    let n = params.len();
+    if m.len() != n || v.len() != n || grads.len() != n {
+        return false;
+    }
+    let mut i = 0;
+    while i < n {
+        if !adam_update_is_finite(s, params[i], m[i], v[i], fixed::from_fixed(grads[i])) {
+            return false;
+        }
+        i += 1;
+    }
+    true
+}
+
 /// [`adam_update`] over a whole group whose gradient was accumulated in fixed point: each
 /// `grads[i]` is converted with [`fixed::from_fixed`] first.
 ///
@@ -126,6 +166,38 @@ pub fn adam_update_fixed(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn finiteness_check_matches_the_update() {
+        let s = AdamStep::new(&AdamConfig::new(0.01), 1);
+        // first step: m = 0.1 g, v = 0.001 g^2, the parameter moves by lr (sign of g)
+        assert!(adam_update_is_finite(&s, 1.0, 0.0, 0.0, 0.5));
+        let (mut p, mut m, mut v) = (1.0f32, 0.0f32, 0.0f32);
+        adam_update(&s, &mut p, &mut m, &mut v, 0.5);
+        assert!((p - 0.99).abs() < 1e-6, "{p}");
+        // lr / (1 - beta1) = 1e38 / 0.1 overflows: the update is not finite
+        let huge = AdamStep::new(&AdamConfig::new(1e38), 1);
+        assert!(huge.lr.is_finite());
+        assert!(!adam_update_is_finite(&huge, 1.0, 0.0, 0.0, 0.5));
+        // non-finite inputs never pass
+        assert!(!adam_update_is_finite(&s, f32::INFINITY, 0.0, 0.0, 0.5));
+        assert!(!adam_update_is_finite(&s, 1.0, f32::NAN, 0.0, 0.5));
+        assert!(!is_finite(f32::NAN) && !is_finite(-f32::INFINITY) && is_finite(f32::MAX));
+        assert!(adam_group_is_finite(
+            &s,
+            &[1.0, 2.0],
+            &[0.0; 2],
+            &[0.0; 2],
+            &[5, -7]
+        ));
+        assert!(!adam_group_is_finite(
+            &s,
+            &[1.0, 2.0],
+            &[0.0; 2],
+            &[0.0; 2],
+            &[5]
+        ));
+    }
 
     #[test]
     fn config_defaults() {

@@ -30,7 +30,10 @@
 //! spaced on camera depth `[0.8 D, D + 0.5 m]` are back-projected. A keyframe's overlap is the
 //! fraction of these points in front of it and projecting more than `overlap_margin` [20] px
 //! inside its image. Keyframes with overlap > 0 are candidates; `window_keyframes` of them are
-//! drawn uniformly at random without replacement (all when fewer).
+//! drawn uniformly at random without replacement (all when fewer). Then `global_keyframes`
+//! [0] more are drawn uniformly from the rest of the cache, whatever their overlap: the
+//! regions the camera has left keep receiving gradients (their colour term at least; their
+//! warp pairs with the window are mostly invalid and masked).
 //!
 //! # Pixel sampling and loss reduction
 //!
@@ -44,11 +47,13 @@
 //! Online, `new_frame_share` (0 = off, the paper's even spread) gives the frames that arrived
 //! since the last update (the last `min(pending, window)` window frames) that fraction of the
 //! pixels (rounded, at least one per frame on each side), spread evenly over them as above;
-//! the other window frames share the rest evenly. The initialisation always spreads evenly.
+//! the other window frames share the rest evenly, unless `keyframe_share` [0] gives the
+//! window's keyframes that fraction of the pixels (rounded, at least one per keyframe, the
+//! older local frames the rest). The initialisation always spreads evenly.
 
 use crate::camera::{Intrinsics, Pose};
 use crate::mapping::{MappingLoss, PixelResult, PixelSample};
-use crate::model::{Ray, RayResult};
+use crate::model::{Group, Ray, RayResult};
 use crate::rng::{hash_u32, SplitMix};
 use crate::step::{Backend, ImageStore, MapBatch};
 use crate::warp::{WarpConfig, MAX_WINDOW};
@@ -75,8 +80,11 @@ pub enum KeyframeOverflow {
 pub struct MapperConfig {
     /// Most recent frames in the window (15).
     pub local_frames: u32,
-    /// Keyframes drawn into the window (5).
+    /// Keyframes drawn into the window by view overlap with the newest frame (5).
     pub window_keyframes: u32,
+    /// Further keyframes drawn uniformly from the rest of the cache, overlapping or not
+    /// (0, the paper's), so that regions the camera has left keep receiving gradients.
+    pub global_keyframes: u32,
     /// New frames between online updates (5).
     pub update_every: u32,
     /// Frames of the initialisation window (15).
@@ -94,6 +102,9 @@ pub struct MapperConfig {
     /// Online updates: fraction of the pixels given to the frames new since the last update
     /// (0 = spread evenly over the window, the paper's; in [0, 1]).
     pub new_frame_share: f32,
+    /// Online updates with `new_frame_share`: fraction of the pixels given to the window's
+    /// keyframes (0 = they share the rest evenly with the older local frames; in [0, 1]).
+    pub keyframe_share: f32,
     /// Colour weight during initialisation (0.1).
     pub lambda_color_init: f32,
     /// Colour weight online (0.001).
@@ -122,6 +133,16 @@ pub struct MapperConfig {
     /// collapsed onto the camera in newly explored space gets a plausible start (0 = off).
     pub lambda_depth_prior_online: f32,
     pub depth_prior_near: f32,
+    /// Non-finite steps: every rejected step (see [`crate::step::StepStats::rejected`]) is
+    /// skipped and counted; after `rejected_lr_after` rejected steps in a row (0 = never)
+    /// every group's learning rate is multiplied by `rejected_lr_factor` (in (0, 1]).
+    pub rejected_lr_after: u32,
+    pub rejected_lr_factor: f32,
+    /// Early-termination threshold during the initialisation (0 = none); online updates use
+    /// the model's own `min_transmittance`. Without termination the samples behind the
+    /// initial surface (the sphere) still receive gradients, so the true surfaces behind it
+    /// can emerge while the geometry is first found.
+    pub init_min_transmittance: f32,
 }
 
 impl MapperConfig {
@@ -130,6 +151,7 @@ impl MapperConfig {
         Self {
             local_frames: 15,
             window_keyframes: 5,
+            global_keyframes: 0,
             update_every: 5,
             init_frames: 15,
             init_iters: 1500,
@@ -138,6 +160,7 @@ impl MapperConfig {
             pixels,
             border: 10,
             new_frame_share: 0.0,
+            keyframe_share: 0.0,
             lambda_color_init: 0.1,
             lambda_color: 0.001,
             lambda_warp: 1.0,
@@ -153,6 +176,9 @@ impl MapperConfig {
             depth_prior_iters: 150,
             lambda_depth_prior_online: 0.0,
             depth_prior_near: 0.5,
+            rejected_lr_after: 3,
+            rejected_lr_factor: 0.5,
+            init_min_transmittance: 0.0,
         }
     }
 
@@ -187,6 +213,21 @@ impl MapperConfig {
         if self.pixels == 0 {
             return Err(Error::InvalidConfig("mapper: pixels must be >= 1"));
         }
+        if !(0.0..1.0).contains(&self.init_min_transmittance) {
+            return Err(Error::InvalidConfig(
+                "mapper: init_min_transmittance must be in [0, 1)",
+            ));
+        }
+        if !(self.rejected_lr_factor > 0.0 && self.rejected_lr_factor <= 1.0) {
+            return Err(Error::InvalidConfig(
+                "mapper: rejected_lr_factor must be in (0, 1]",
+            ));
+        }
+        if !(self.keyframe_share >= 0.0 && self.new_frame_share + self.keyframe_share <= 1.0) {
+            return Err(Error::InvalidConfig(
+                "mapper: keyframe_share must be >= 0 and new_frame_share + keyframe_share <= 1",
+            ));
+        }
         if !(self.new_frame_share >= 0.0 && self.new_frame_share <= 1.0) {
             return Err(Error::InvalidConfig(
                 "mapper: new_frame_share must be in [0, 1]",
@@ -199,8 +240,8 @@ impl MapperConfig {
             MAX_LOCAL,
         )?;
         cap(
-            "mapper window (local_frames + window_keyframes)",
-            (self.local_frames + self.window_keyframes) as u64,
+            "mapper window (local_frames + window_keyframes + global_keyframes)",
+            (self.local_frames + self.window_keyframes + self.global_keyframes) as u64,
             MAX_WINDOW,
         )?;
         cap("mapper init_frames", self.init_frames as u64, MAX_WINDOW)?;
@@ -303,6 +344,8 @@ pub struct IterInfo {
     /// opacity < 0.5): it met no surface inside the box (a box too small there, or space not
     /// mapped yet).
     pub open_rays: f32,
+    /// The step was not finite and was not applied ([`crate::step::StepStats::rejected`]).
+    pub rejected: bool,
 }
 
 /// What one mapping update did.
@@ -357,6 +400,10 @@ pub struct Mapper<'a, B: Backend> {
     pushed: u32,
     /// Iterations run so far (seeds the stratified jitter).
     total_iters: u32,
+    /// Rejected (non-finite) steps in all, in a row now, and learning-rate reductions.
+    rejected_steps: u32,
+    rejected_run: u32,
+    lr_reductions: u32,
     rng: SplitMix,
     pixels: &'a mut [PixelSample],
     results: &'a mut [PixelResult],
@@ -413,6 +460,9 @@ impl<'a, B: Backend> Mapper<'a, B> {
             initialized: false,
             pushed: 0,
             total_iters: 0,
+            rejected_steps: 0,
+            rejected_run: 0,
+            lr_reductions: 0,
             rng: SplitMix::new(cfg.seed),
             pixels,
             results,
@@ -460,6 +510,16 @@ impl<'a, B: Backend> Mapper<'a, B> {
     /// Frames pushed so far.
     pub fn frames_pushed(&self) -> u32 {
         self.pushed
+    }
+
+    /// Steps rejected as non-finite so far (skipped; see [`MapperConfig::rejected_lr_after`]).
+    pub fn rejected_steps(&self) -> u32 {
+        self.rejected_steps
+    }
+
+    /// Times the learning rates were lowered after rejected steps.
+    pub fn lr_reductions(&self) -> u32 {
+        self.lr_reductions
     }
 
     /// Mapping iterations run so far.
@@ -568,7 +628,20 @@ impl<'a, B: Backend> Mapper<'a, B> {
             self.add_to_window(self.local[i]);
             i += 1;
         }
-        let (first, last) = self.run_iters(UpdateKind::Init, self.cfg.init_iters, observe)?;
+        let online_t = self.backend.layout().config.min_transmittance;
+        let init_t = self.cfg.init_min_transmittance;
+        if init_t != online_t {
+            self.backend
+                .set_min_transmittance(init_t)
+                .map_err(MapperError::Backend)?;
+        }
+        let iters = self.run_iters(UpdateKind::Init, self.cfg.init_iters, observe);
+        if init_t != online_t {
+            self.backend
+                .set_min_transmittance(online_t)
+                .map_err(MapperError::Backend)?;
+        }
+        let (first, last) = iters?;
         self.initialized = true;
         self.pending = 0;
         // A longer initialisation window than the local set: trim it now.
@@ -699,7 +772,8 @@ impl<'a, B: Backend> Mapper<'a, B> {
         self.win_len = 0;
         self.win_kf = 0;
         let want = self.cfg.window_keyframes as usize;
-        if want == 0 || self.kf_len == 0 || self.local_len == 0 {
+        if want + self.cfg.global_keyframes as usize == 0 || self.kf_len == 0 || self.local_len == 0
+        {
             return Ok(0);
         }
         let cur = self.local[self.local_len - 1].pose;
@@ -772,6 +846,29 @@ impl<'a, B: Backend> Mapper<'a, B> {
             self.candidates.swap(i, j);
             i += 1;
         }
+        // Global keyframes: drawn uniformly from every other keyframe of the cache.
+        let mut take = take;
+        let global = self.cfg.global_keyframes as usize;
+        if global > 0 && take < self.kf_len {
+            // the cache indices not chosen yet, after the chosen ones
+            let mut m = take;
+            let mut f = 0;
+            while f < self.kf_len {
+                if !self.candidates[..take].contains(&(f as u16)) {
+                    self.candidates[m] = f as u16;
+                    m += 1;
+                }
+                f += 1;
+            }
+            let extra = global.min(m - take);
+            let mut i = take;
+            while i < take + extra {
+                let j = i + self.rng.below((m - i) as u32) as usize;
+                self.candidates.swap(i, j);
+                i += 1;
+            }
+            take += extra;
+        }
         // Keep the chosen keyframes in cache order (oldest first).
         self.candidates[..take].sort_unstable();
         let mut i = 0;
@@ -800,8 +897,19 @@ impl<'a, B: Backend> Mapper<'a, B> {
         let n_old = n - n_new;
         let want = (self.cfg.new_frame_share * total as f32 + 0.5) as u32;
         let new_total = want.clamp(n_new, total - n_old);
-        self.sample_range(0, n_old, 0, total - new_total);
-        self.sample_range(n_old, n, (total - new_total) as usize, new_total);
+        let old_total = total - new_total;
+        // the window's keyframes are its first `win_kf` frames
+        let n_kf = (self.win_kf as u32).min(n_old);
+        if self.cfg.keyframe_share > 0.0 && n_kf > 0 && n_kf < n_old {
+            let n_mid = n_old - n_kf;
+            let want = (self.cfg.keyframe_share * total as f32 + 0.5) as u32;
+            let kf_total = want.clamp(n_kf.min(old_total), old_total.saturating_sub(n_mid));
+            self.sample_range(0, n_kf, 0, kf_total);
+            self.sample_range(n_kf, n_old, kf_total as usize, old_total - kf_total);
+        } else {
+            self.sample_range(0, n_old, 0, old_total);
+        }
+        self.sample_range(n_old, n, old_total as usize, new_total);
     }
 
     /// Draws `total` pixels spread evenly over window frames `f0..f1` into
@@ -832,6 +940,25 @@ impl<'a, B: Backend> Mapper<'a, B> {
         }
     }
 
+    /// Counts a rejected step and, after `rejected_lr_after` in a row, lowers every group's
+    /// learning rate by `rejected_lr_factor`.
+    fn on_rejected_step(&mut self) -> Result<(), MapperError<B::Error>> {
+        self.rejected_steps += 1;
+        self.rejected_run += 1;
+        let after = self.cfg.rejected_lr_after;
+        if after > 0 && self.rejected_run >= after {
+            self.rejected_run = 0;
+            self.lr_reductions += 1;
+            for g in Group::ALL {
+                let lr = self.backend.adam_lr(g) * self.cfg.rejected_lr_factor;
+                self.backend
+                    .set_adam_lr(g, lr)
+                    .map_err(MapperError::Backend)?;
+            }
+        }
+        Ok(())
+    }
+
     fn run_iters<F: FnMut(&IterInfo)>(
         &mut self,
         kind: UpdateKind,
@@ -848,6 +975,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
             warp_loss: 0.0,
             warp_valid: 0.0,
             open_rays: 0.0,
+            rejected: false,
         };
         let mut last = first;
         let mut it = 0;
@@ -909,7 +1037,13 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 warp_loss: wl,
                 warp_valid: valid as f32 * inv,
                 open_rays: open as f32 * inv,
+                rejected: stats.rejected,
             };
+            if stats.rejected {
+                self.on_rejected_step()?;
+            } else {
+                self.rejected_run = 0;
+            }
             if it == 0 {
                 first = info;
             }
@@ -948,7 +1082,7 @@ pub fn view_rays(k: &Intrinsics, pose: &Pose, out: &mut [Ray]) -> Result<(), Err
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::{Group, LossConfig, ModelConfig, ModelLayout};
+    use crate::model::{LossConfig, ModelConfig, ModelLayout};
     use crate::step::StepStats;
     use crate::Aabb;
     use std::vec;
@@ -970,6 +1104,11 @@ mod tests {
         store: ImageStore,
         uploads: Vec<u32>,
         calls: Vec<Call>,
+        /// Every step reports itself rejected; the learning rates the mapper set.
+        reject: bool,
+        lr: [f32; crate::model::NUM_GROUPS],
+        /// Every early-termination threshold the mapper set.
+        min_t: Vec<f32>,
     }
 
     impl Mock {
@@ -985,6 +1124,9 @@ mod tests {
                 },
                 uploads: Vec::new(),
                 calls: Vec::new(),
+                reject: false,
+                lr: [0.01; crate::model::NUM_GROUPS],
+                min_t: Vec::new(),
             }
         }
     }
@@ -1056,10 +1198,19 @@ mod tests {
                 loss: 0.25 * results.len() as f32,
                 rays_hit: 0,
                 t: self.calls.len() as u32,
+                rejected: self.reject,
             })
         }
-        fn set_adam_lr(&mut self, _: Group, _: f32) -> Result<(), Error> {
+        fn set_adam_lr(&mut self, g: Group, lr: f32) -> Result<(), Error> {
+            self.lr[g as usize] = lr;
             Ok(())
+        }
+        fn adam_lr(&self, g: Group) -> f32 {
+            self.lr[g as usize]
+        }
+        fn set_min_transmittance(&mut self, t: f32) -> Result<(), Error> {
+            self.min_t.push(t);
+            self.layout.set_min_transmittance(t)
         }
     }
 
@@ -1315,6 +1466,120 @@ mod tests {
             &mut res
         )
         .is_err());
+    }
+
+    #[test]
+    fn rejected_steps_are_counted_and_lower_the_learning_rates() {
+        let mut c = cfg();
+        c.rejected_lr_after = 3;
+        c.rejected_lr_factor = 0.5;
+        let (mut px, mut res) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        let mut backend = Mock::new(c.slots_needed());
+        backend.reject = true;
+        let mut m = Mapper::new(backend, c, intr(), &mut px, &mut res).unwrap();
+        let mut seen = 0;
+        let img = image();
+        for id in 0..15 {
+            m.push_frame_observed(&img, pose(id), &mut |i: &IterInfo| {
+                seen += i.rejected as u32
+            })
+            .unwrap();
+        }
+        // the initialisation's 7 iterations, all rejected: two reductions (after 3 and 6)
+        assert_eq!((m.rejected_steps(), m.lr_reductions(), seen), (7, 2, 7));
+        assert_eq!(m.backend().lr, [0.0025; crate::model::NUM_GROUPS]);
+        let mut bad = cfg();
+        bad.rejected_lr_factor = 0.0;
+        assert!(Mapper::new(
+            Mock::new(bad.slots_needed()),
+            bad,
+            intr(),
+            &mut px,
+            &mut res
+        )
+        .is_err());
+    }
+
+    #[test]
+    fn initialisation_runs_with_its_own_termination_threshold() {
+        for (init_t, want) in [(0.0, vec![]), (0.01, vec![0.01, 0.0])] {
+            let mut c = cfg();
+            c.init_min_transmittance = init_t;
+            let (mut px, mut res) = (
+                vec![PixelSample::default(); 60],
+                vec![PixelResult::default(); 60],
+            );
+            let mut m =
+                Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+            push_n(&mut m, 20);
+            // set before the initialisation, the model's own (0) restored after it
+            assert_eq!(m.backend().min_t, want);
+            assert_eq!(m.backend().layout.config.min_transmittance, 0.0);
+        }
+    }
+
+    #[test]
+    fn keyframes_get_their_share_of_pixels_online() {
+        let mut c = cfg();
+        c.new_frame_share = 0.5;
+        c.keyframe_share = 0.2;
+        let (mut px, mut res) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 20);
+        let calls = &m.backend().calls;
+        // the first online update: 1 keyframe + 15 local frames, 5 of them new: 30 pixels
+        // over the new frames, 12 (0.2 x 60) on the keyframe, 18 over the 10 older local
+        // frames (2 each, the first 8 one more)
+        let mut count = vec![0u32; 16];
+        for p in &calls[7].pixels {
+            count[p.frame as usize] += 1;
+        }
+        let want: Vec<u32> = (0..16)
+            .map(|f| match f {
+                0 => 12,
+                1..=8 => 2,
+                9..=10 => 1,
+                _ => 6,
+            })
+            .collect();
+        assert_eq!(count, want);
+        let mut bad = cfg();
+        bad.new_frame_share = 0.75;
+        bad.keyframe_share = 0.5;
+        assert!(Mapper::new(
+            Mock::new(bad.slots_needed()),
+            bad,
+            intr(),
+            &mut px,
+            &mut res
+        )
+        .is_err());
+    }
+
+    #[test]
+    fn global_keyframes_join_the_window_whatever_their_overlap() {
+        for (global, want) in [(0, 0), (2, 2)] {
+            let mut c = cfg();
+            c.window_keyframes = 0;
+            c.global_keyframes = global;
+            let (mut px, mut res) = (
+                vec![PixelSample::default(); 60],
+                vec![PixelResult::default(); 60],
+            );
+            let mut m =
+                Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+            let reports = push_n(&mut m, 35);
+            let last = reports.last().unwrap();
+            assert!(last.keyframes >= 3, "{last:?}");
+            assert_eq!(last.window_keyframes, want);
+            assert_eq!(last.window_frames, 15 + want);
+        }
     }
 
     #[test]

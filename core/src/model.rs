@@ -121,6 +121,16 @@ pub struct ModelLayout {
 }
 
 impl ModelLayout {
+    /// Changes the early-termination threshold ([`ModelConfig::min_transmittance`], in
+    /// [0, 1); the shapes stay as they are).
+    pub fn set_min_transmittance(&mut self, t: f32) -> Result<(), Error> {
+        if !(0.0..1.0).contains(&t) {
+            return Err(Error::InvalidConfig("min_transmittance must be in [0, 1)"));
+        }
+        self.config.min_transmittance = t;
+        Ok(())
+    }
+
     /// Builds and validates every layout.
     pub fn new(config: &ModelConfig) -> Result<Self, Error> {
         if !config.aabb.is_valid() {

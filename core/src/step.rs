@@ -62,6 +62,12 @@ pub struct StepStats {
     pub rays_hit: u32,
     /// Adam step number after this step.
     pub t: u32,
+    /// The step was not finite and was not applied: a ray's or pixel's loss, or a parameter
+    /// or Adam moment the update would produce, was infinite or NaN. The parameters, the
+    /// moments and `t` are as before the step (the fixed-point gradients are finite by
+    /// construction: [`crate::fixed::to_fixed`] counts a NaN contribution as zero and
+    /// saturates infinite ones, so the update is what can overflow).
+    pub rejected: bool,
 }
 
 /// The operations the mapper and the CLI need from a compute backend.
@@ -73,7 +79,9 @@ pub trait Backend {
     /// Human-readable backend name ("cpu", "cpu-parallel(4)", "vulkan: <device>").
     fn name(&self) -> &str;
     /// One training step: gradients of the loss over `rays` (into zeroed fixed-point buffers)
-    /// and an Adam update of every group. `results[i]` receives ray i's outputs.
+    /// and an Adam update of every group, unless the step is not finite
+    /// ([`StepStats::rejected`]: nothing but the gradient buffers changes then).
+    /// `results[i]` receives ray i's outputs.
     fn train_step(
         &mut self,
         rays: &[Ray],
@@ -100,7 +108,8 @@ pub trait Backend {
     /// byte, see [`crate::mapping::pack_rgba8`]) in image slot `slot`.
     fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), Self::Error>;
     /// One mapping iteration: zero the gradients, [`pixel_train`] for every pixel
-    /// (`pixel_id` = its index in `batch.pixels`), Adam. `results[i]` receives pixel i's
+    /// (`pixel_id` = its index in `batch.pixels`), Adam unless the step is not finite
+    /// ([`StepStats::rejected`]). `results[i]` receives pixel i's
     /// outputs; the returned loss is the sum of the pixels' colour and warp losses in pixel
     /// order.
     fn map_step(
@@ -110,6 +119,11 @@ pub trait Backend {
     ) -> Result<StepStats, Self::Error>;
     /// Changes a group's Adam learning rate (moments are kept).
     fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), Self::Error>;
+    /// A group's Adam learning rate.
+    fn adam_lr(&self, group: Group) -> f32;
+    /// Changes the model's early-termination threshold (`ModelConfig::min_transmittance`)
+    /// for the steps and renders that follow.
+    fn set_min_transmittance(&mut self, t: f32) -> Result<(), Self::Error>;
 }
 
 /// Size of the image slots a backend stores frames in (fixed at construction).
@@ -184,14 +198,17 @@ pub fn window_slots(batch: &MapBatch<'_>, store: &ImageStore) -> Result<[u32; MA
 pub fn summarize_pixels(results: &[PixelResult], t: u32) -> StepStats {
     let mut loss = 0.0f32;
     let mut hit = 0u32;
+    let mut finite = true;
     for r in results {
         loss += r.color_loss + r.warp_loss;
         hit += (r.opacity > 0.0) as u32;
+        finite &= adam::is_finite(r.color_loss) && adam::is_finite(r.warp_loss);
     }
     StepStats {
         loss,
         rays_hit: hit,
         t,
+        rejected: !finite,
     }
 }
 
@@ -368,20 +385,44 @@ impl<'a> CpuBackend<'a> {
         }
         Ok(())
     }
+
+    /// Whether Adam from the accumulated gradients would leave every parameter and moment
+    /// finite (nothing is written).
+    pub fn adam_is_finite(&self) -> bool {
+        self.groups.iter().enumerate().all(|(g, state)| {
+            let s = AdamStep::new(&self.adam[g], self.t + 1);
+            adam::adam_group_is_finite(&s, state.params, state.m, state.v, state.grad)
+        })
+    }
+
+    /// Applies Adam unless `stats` already says the step is rejected or the update would not
+    /// be finite (see [`StepStats::rejected`]); sets `stats.t` and `stats.rejected`.
+    fn finish_step(&mut self, stats: &mut StepStats) -> Result<(), Error> {
+        if !stats.rejected && self.adam_is_finite() {
+            self.apply_adam()?;
+        } else {
+            stats.rejected = true;
+        }
+        stats.t = self.t;
+        Ok(())
+    }
 }
 
 /// Step statistics from per-ray results (loss summed in ray order).
 pub fn summarize(results: &[RayResult], t: u32) -> StepStats {
     let mut loss = 0.0f32;
     let mut hit = 0u32;
+    let mut finite = true;
     for r in results {
         loss += r.loss;
         hit += (r.opacity > 0.0) as u32;
+        finite &= adam::is_finite(r.loss);
     }
     StepStats {
         loss,
         rays_hit: hit,
         t,
+        rejected: !finite,
     }
 }
 
@@ -404,8 +445,7 @@ impl Backend for CpuBackend<'_> {
     ) -> Result<StepStats, Error> {
         self.zero_grads();
         let mut stats = self.accumulate(rays, loss, results)?;
-        self.apply_adam()?;
-        stats.t = self.t;
+        self.finish_step(&mut stats)?;
         Ok(stats)
     }
 
@@ -493,8 +533,7 @@ impl Backend for CpuBackend<'_> {
     ) -> Result<StepStats, Error> {
         self.zero_grads();
         let mut stats = self.accumulate_pixels(batch, results)?;
-        self.apply_adam()?;
-        stats.t = self.t;
+        self.finish_step(&mut stats)?;
         Ok(stats)
     }
 
@@ -506,6 +545,14 @@ impl Backend for CpuBackend<'_> {
         }
         self.adam[group as usize].lr = lr;
         Ok(())
+    }
+
+    fn adam_lr(&self, group: Group) -> f32 {
+        self.adam[group as usize].lr
+    }
+
+    fn set_min_transmittance(&mut self, t: f32) -> Result<(), Error> {
+        self.layout.set_min_transmittance(t)
     }
 }
 

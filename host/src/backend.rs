@@ -91,6 +91,16 @@ impl AdamHw {
         *m = m_new;
         *v = v_new;
     }
+
+    /// Whether [`Self::update`] would leave the parameter and both moments finite.
+    #[inline(always)]
+    pub fn update_is_finite(&self, param: f32, m: f32, v: f32, grad: f32) -> bool {
+        let (mut p, mut m, mut v) = (param, m, v);
+        self.update(&mut p, &mut m, &mut v, grad);
+        himap_core::adam::is_finite(p)
+            & himap_core::adam::is_finite(m)
+            & himap_core::adam::is_finite(v)
+    }
 }
 
 /// Per [`BLOCK`] of each group, whether any Adam moment in it is non-zero.
@@ -201,6 +211,8 @@ pub struct ParallelCpuBackend {
     live: [Vec<bool>; NUM_GROUPS],
     /// `live` must be recomputed from the moments (after [`Self::data_mut`]).
     live_stale: bool,
+    /// The blocks the current step's Adam visits (`live` or touched by a worker).
+    run: [Vec<bool>; NUM_GROUPS],
 }
 
 /// Parameters per block of the sum and Adam pass (and of the touched / live flags).
@@ -371,6 +383,7 @@ impl ParallelCpuBackend {
         let lens = data.layout.group_lens();
         let live = live_blocks(&data);
         Ok(Self {
+            run: live.clone(),
             live,
             live_stale: false,
             workers: (0..n).map(|_| Mutex::new(Worker::new(lens))).collect(),
@@ -524,25 +537,43 @@ impl ParallelCpuBackend {
     }
 
     /// Sums the workers' gradients into `grads` (zeroing the workers' buffers for the next
-    /// step) and runs Adam on every group, element-wise in parallel ([`adam_update_hw`]).
-    fn apply_adam(&mut self) {
+    /// step), then runs Adam on every group, element-wise in parallel ([`AdamHw`]), unless
+    /// `reject` or the update would not be finite: then nothing but the gradient sums
+    /// changes, and `stats.rejected` says so (see [`StepStats::rejected`]). Sets `stats.t`.
+    fn finish_step(&mut self, stats: &mut StepStats) {
+        let t = self.data.t + 1;
+        let finite = self.reduce_grads(t);
+        if !stats.rejected && finite {
+            self.apply_adam(t);
+        } else {
+            stats.rejected = true;
+        }
+        stats.t = self.data.t;
+    }
+
+    /// Marks the blocks Adam visits at step `t` (live or touched by a worker), sums the
+    /// workers' gradients of those blocks into `grads` and zeroes the workers' buffers.
+    /// Returns whether Adam at step `t` would leave every parameter and moment finite.
+    fn reduce_grads(&mut self, t: u32) -> bool {
         if self.live_stale {
             self.live = live_blocks(&self.data);
             self.live_stale = false;
+            // a block that leaves `live` must not keep an old sum
+            for g in self.grads.iter_mut() {
+                g.fill(0);
+            }
         }
-        self.data.t += 1;
-        let t = self.data.t;
-        let ModelData { params, m, v, .. } = &mut self.data;
-        let adam_cfg = &self.adam;
+        let ModelData { params, m, v, .. } = &self.data;
         let mut workers: Vec<_> = self
             .workers
             .iter_mut()
             .map(|w| w.get_mut().unwrap_or_else(|e| e.into_inner()))
             .collect();
+        let mut finite = true;
         for g in 0..NUM_GROUPS {
-            let s = AdamStep::new(&adam_cfg[g], t);
-            let hw = AdamHw::new(&s);
-            let mut run: Vec<bool> = self.live[g].clone();
+            let hw = AdamHw::new(&AdamStep::new(&self.adam[g], t));
+            let run = &mut self.run[g];
+            run.clone_from(&self.live[g]);
             for w in workers.iter_mut() {
                 for (r, t) in run.iter_mut().zip(w.touched[g].iter_mut()) {
                     *r |= std::mem::take(t);
@@ -552,27 +583,27 @@ impl ParallelCpuBackend {
                 .iter_mut()
                 .map(|w| w.grads[g].chunks_mut(BLOCK))
                 .collect();
-            // One work item per block that may change: the parameters, moments, summed
-            // gradient and every worker's block of the same range. Skipped blocks keep their
-            // (zero) sum and worker buffers.
             let mut items = Vec::with_capacity(params[g].len().div_ceil(BLOCK));
             for (b, (((p, m), v), sum)) in params[g]
-                .chunks_mut(BLOCK)
-                .zip(m[g].chunks_mut(BLOCK))
-                .zip(v[g].chunks_mut(BLOCK))
+                .chunks(BLOCK)
+                .zip(m[g].chunks(BLOCK))
+                .zip(v[g].chunks(BLOCK))
                 .zip(self.grads[g].chunks_mut(BLOCK))
                 .enumerate()
             {
                 let blocks: Vec<&mut [i64]> = parts.iter_mut().filter_map(|it| it.next()).collect();
                 if run[b] {
+                    // its sum is written now, so Adam visits it from now on (where it is the
+                    // identity while its moments and sum are zero)
                     self.live[g][b] = true;
                     items.push((p, m, v, sum, blocks));
                 }
             }
-            self.pool.install(|| {
+            finite &= self.pool.install(|| {
                 items
                     .into_par_iter()
-                    .for_each(|(p, m, v, sum, mut blocks)| {
+                    .map(|(p, m, v, sum, mut blocks)| {
+                        let mut ok = true;
                         for i in 0..p.len() {
                             let mut q = 0i64;
                             for b in blocks.iter_mut() {
@@ -580,9 +611,41 @@ impl ParallelCpuBackend {
                                 b[i] = 0;
                             }
                             sum[i] = q;
-                            hw.update(&mut p[i], &mut m[i], &mut v[i], fixed::from_fixed(q));
+                            ok &= hw.update_is_finite(p[i], m[i], v[i], fixed::from_fixed(q));
                         }
-                    });
+                        ok
+                    })
+                    .reduce(|| true, |a, b| a & b)
+            });
+        }
+        finite
+    }
+
+    /// Adam step `t` on the blocks [`Self::reduce_grads`] marked, from the summed gradients.
+    fn apply_adam(&mut self, t: u32) {
+        self.data.t = t;
+        let ModelData { params, m, v, .. } = &mut self.data;
+        for g in 0..NUM_GROUPS {
+            let hw = AdamHw::new(&AdamStep::new(&self.adam[g], t));
+            // One work item per block that may change: its parameters, moments and summed
+            // gradient. Skipped blocks have zero moments and a zero sum, where Adam is the
+            // identity.
+            let run = &self.run[g];
+            let items: Vec<_> = params[g]
+                .chunks_mut(BLOCK)
+                .zip(m[g].chunks_mut(BLOCK))
+                .zip(v[g].chunks_mut(BLOCK))
+                .zip(self.grads[g].chunks(BLOCK))
+                .enumerate()
+                .filter(|(b, _)| run[*b])
+                .map(|(_, x)| x)
+                .collect();
+            self.pool.install(|| {
+                items.into_par_iter().for_each(|(((p, m), v), sum)| {
+                    for i in 0..p.len() {
+                        hw.update(&mut p[i], &mut m[i], &mut v[i], fixed::from_fixed(sum[i]));
+                    }
+                });
             });
         }
     }
@@ -647,8 +710,7 @@ impl Backend for ParallelCpuBackend {
         results: &mut [RayResult],
     ) -> Result<StepStats, CpuError> {
         let mut stats = self.accumulate(rays, loss, results)?;
-        self.apply_adam();
-        stats.t = self.data.t;
+        self.finish_step(&mut stats);
         Ok(stats)
     }
 
@@ -733,8 +795,7 @@ impl Backend for ParallelCpuBackend {
         results: &mut [PixelResult],
     ) -> Result<StepStats, CpuError> {
         let mut stats = self.accumulate_pixels(batch, results)?;
-        self.apply_adam();
-        stats.t = self.data.t;
+        self.finish_step(&mut stats);
         Ok(stats)
     }
 
@@ -746,6 +807,14 @@ impl Backend for ParallelCpuBackend {
         }
         self.adam[group as usize].lr = lr;
         Ok(())
+    }
+
+    fn adam_lr(&self, group: Group) -> f32 {
+        self.adam[group as usize].lr
+    }
+
+    fn set_min_transmittance(&mut self, t: f32) -> Result<(), CpuError> {
+        Ok(self.data.layout.set_min_transmittance(t)?)
     }
 }
 

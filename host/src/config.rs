@@ -114,6 +114,9 @@ pub struct MapperSection {
     pub local_frames: u32,
     /// Keyframes drawn into the window by view overlap (5).
     pub window_keyframes: u32,
+    /// Further keyframes drawn uniformly from the rest of the cache, whatever their overlap
+    /// (0, the paper's), so that regions the camera has left keep receiving gradients.
+    pub global_keyframes: u32,
     /// New frames between online updates (5).
     pub update_every: u32,
     /// Frames of the initialisation (15).
@@ -131,6 +134,9 @@ pub struct MapperSection {
     /// Online updates: fraction of the pixels given to the frames new since the last update
     /// (0 = spread evenly over the window, the paper's).
     pub new_frame_share: f32,
+    /// With it: fraction of the pixels given to the window's keyframes (0 = they share the
+    /// rest evenly with the older local frames).
+    pub keyframe_share: f32,
     /// Colour weight during initialisation (0.1) and online (0.001); warp weight (1.0).
     pub lambda_color_init: f32,
     pub lambda_color: f32,
@@ -146,6 +152,15 @@ pub struct MapperSection {
     /// newly explored space get a plausible start (0 = off; `small`: 1.0, 0.5 m).
     pub lambda_depth_prior_online: f32,
     pub depth_prior_near: f32,
+    /// Non-finite steps are skipped and counted (`summary.json`: `rejected_steps`); after
+    /// `rejected_lr_after` in a row (0 = never) every learning rate is multiplied by
+    /// `rejected_lr_factor` (3 and 0.5).
+    pub rejected_lr_after: u32,
+    pub rejected_lr_factor: f32,
+    /// Early-termination threshold during the initialisation (0 = none, the default; online
+    /// updates use `model.min_transmittance`): the true surfaces behind the initial sphere
+    /// keep receiving gradients while the geometry is first found.
+    pub init_min_transmittance: f32,
     /// Keyframe cache capacity.
     pub max_keyframes: u32,
     /// When the cache is full: "thin" (drop every other keyframe) or "drop-oldest".
@@ -349,6 +364,7 @@ impl Config {
             mapper: MapperSection {
                 local_frames: m.local_frames,
                 window_keyframes: m.window_keyframes,
+                global_keyframes: m.global_keyframes,
                 update_every: m.update_every,
                 init_frames: m.init_frames,
                 init_iters: m.init_iters,
@@ -357,6 +373,7 @@ impl Config {
                 pixels: m.pixels,
                 border: m.border,
                 new_frame_share: m.new_frame_share,
+                keyframe_share: m.keyframe_share,
                 lambda_color_init: m.lambda_color_init,
                 lambda_color: m.lambda_color,
                 lambda_warp: m.lambda_warp,
@@ -366,6 +383,9 @@ impl Config {
                 depth_prior_iters: m.depth_prior_iters,
                 lambda_depth_prior_online: m.lambda_depth_prior_online,
                 depth_prior_near: m.depth_prior_near,
+                rejected_lr_after: m.rejected_lr_after,
+                rejected_lr_factor: m.rejected_lr_factor,
+                init_min_transmittance: m.init_min_transmittance,
                 max_keyframes: m.max_keyframes,
                 keyframe_overflow: "thin".into(),
                 overlap_pixels: m.overlap_pixels,
@@ -621,6 +641,7 @@ impl Config {
             local_frames: m.local_frames,
             window_keyframes: m.window_keyframes,
             update_every: m.update_every,
+            global_keyframes: m.global_keyframes,
             init_frames: m.init_frames,
             init_iters: m.init_iters,
             init_color_iters: m.init_color_iters,
@@ -628,6 +649,7 @@ impl Config {
             pixels: m.pixels,
             border: m.border,
             new_frame_share: m.new_frame_share,
+            keyframe_share: m.keyframe_share,
             lambda_color_init: m.lambda_color_init,
             lambda_color: m.lambda_color,
             lambda_warp: m.lambda_warp,
@@ -637,6 +659,9 @@ impl Config {
             depth_prior_iters: m.depth_prior_iters,
             lambda_depth_prior_online: m.lambda_depth_prior_online,
             depth_prior_near: m.depth_prior_near,
+            rejected_lr_after: m.rejected_lr_after,
+            rejected_lr_factor: m.rejected_lr_factor,
+            init_min_transmittance: m.init_min_transmittance,
             max_keyframes: m.max_keyframes,
             keyframe_overflow: self.keyframe_overflow()?,
             overlap_pixels: m.overlap_pixels,

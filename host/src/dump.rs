@@ -87,6 +87,30 @@ pub fn random_rays(n: usize, seed: u64) -> Vec<Ray> {
         .collect()
 }
 
+/// The non-finite-step sequence the backends' rejection tests run (four train steps over
+/// `rays`, [`LossConfig`] as in `loss`): a finite step; the same rays with one target colour
+/// NaN (the loss is not finite); the finite rays with the geometry decoder's learning rate at
+/// 1e38 (`lr / (1 - beta1^t)` overflows, so the update is not finite), the rate then set back
+/// to `lr`; a finite step. Returns each step's statistics; a backend must reject steps 2
+/// and 3 and leave every parameter, moment and the step count as they were.
+pub fn nonfinite_sequence<B: Backend>(
+    backend: &mut B,
+    rays: &[Ray],
+    loss: &LossConfig,
+    lr: f32,
+) -> Result<Vec<himap_core::step::StepStats>, B::Error> {
+    let mut res = vec![RayResult::default(); rays.len()];
+    let mut stats = vec![backend.train_step(rays, loss, &mut res)?];
+    let mut poisoned = rays.to_vec();
+    poisoned[rays.len() / 2].target[1] = f32::NAN;
+    stats.push(backend.train_step(&poisoned, loss, &mut res)?);
+    backend.set_adam_lr(Group::GeometryMlp, 1e38)?;
+    stats.push(backend.train_step(rays, loss, &mut res)?);
+    backend.set_adam_lr(Group::GeometryMlp, lr)?;
+    stats.push(backend.train_step(rays, loss, &mut res)?);
+    Ok(stats)
+}
+
 fn grid_json(l: &GridLayout) -> serde_json::Value {
     let levels: Vec<_> = (0..l.levels as usize)
         .map(|i| {

@@ -112,6 +112,10 @@ pub struct MapSummary {
     pub scene_box_source: String,
     pub updates: usize,
     pub iterations: u32,
+    /// Mapping steps rejected as not finite (skipped, parameters kept), and the times the
+    /// learning rates were lowered after `mapper.rejected_lr_after` of them in a row.
+    pub rejected_steps: u32,
+    pub lr_reductions: u32,
     pub mean_psnr: Option<f64>,
     pub mean_ssim: Option<f64>,
     pub mean_depth_l1_cm: Option<f64>,
@@ -123,6 +127,7 @@ pub struct MapSummary {
     pub final_psnr: Option<f64>,
     pub final_ssim: Option<f64>,
     pub final_depth_l1_cm: Option<f64>,
+    pub final_per_frame: Vec<FinalFrame>,
     /// Accuracy, Completion (cm), Completion ratio (%) when a ground truth exists.
     pub mesh: Option<crate::eval::MeshMetrics>,
     pub mesh_ground_truth: Option<String>,
@@ -849,6 +854,19 @@ where
             if info.iter.is_multiple_of(10) {
                 pb.tick();
             }
+            if info.rejected {
+                pb.suspend(|| {
+                    eprintln!(
+                        "warning: frame {}: {} iteration {}/{} was not finite (loss {}); \
+                         skipped, parameters kept",
+                        frame.index,
+                        kind_label(info.kind),
+                        info.iter + 1,
+                        info.iters,
+                        info.loss
+                    )
+                });
+            }
             log.borrow_mut().iteration(i, info);
         };
         let rep = mapper
@@ -875,6 +893,13 @@ where
     }
     pb.finish_and_clear();
     let iterations = mapper.iterations();
+    let (rejected_steps, lr_reductions) = (mapper.rejected_steps(), mapper.lr_reductions());
+    if lr_reductions > 0 {
+        eprintln!(
+            "warning: {rejected_steps} mapping steps were not finite; the learning rates were \
+             lowered {lr_reductions} times (mapper.rejected_lr_after / rejected_lr_factor)"
+        );
+    }
 
     log.borrow_mut().done(rows.len(), mapping_s);
 
@@ -965,6 +990,8 @@ where
         scene_box_source: box_src.to_string(),
         updates: rows.len(),
         iterations,
+        rejected_steps,
+        lr_reductions,
         mean_psnr: mean(rows.iter().map(|r| r.psnr)),
         mean_ssim: mean(rows.iter().map(|r| r.ssim)),
         mean_depth_l1_cm: mean(rows.iter().filter_map(|r| r.depth_l1_cm)),
@@ -973,6 +1000,7 @@ where
         final_psnr: fin.psnr,
         final_ssim: fin.ssim,
         final_depth_l1_cm: fin.depth_l1_cm,
+        final_per_frame: fin.per_frame,
         mesh: mesh_metrics,
         mesh_ground_truth: mesh_gt,
         mesh_error: mesh_err,
@@ -1045,6 +1073,17 @@ struct FinalEval {
     psnr: Option<f64>,
     ssim: Option<f64>,
     depth_l1_cm: Option<f64>,
+    per_frame: Vec<FinalFrame>,
+}
+
+/// One frame of the final-map evaluation (`summary.json`: `final_per_frame`), so that
+/// forgetting shows where along the sequence it happens.
+#[derive(Clone, Debug, Serialize)]
+pub struct FinalFrame {
+    pub frame: usize,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub depth_l1_cm: Option<f64>,
 }
 
 /// Renders frames 0, k, 2k, ... of `ds` from the map in `backend` at `ek` (after mapping: the
@@ -1058,20 +1097,24 @@ fn final_map_eval<B: Backend>(
 where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
-    let (mut psnr, mut ssim, mut dl1) = (Vec::new(), Vec::new(), Vec::new());
+    let mut per_frame = Vec::new();
     if every > 0 {
         for i in (0..ds.len()).step_by(every) {
             let v = evaluate_view(backend, ek, &ds.frame(i)?)?;
-            psnr.push(v.psnr);
-            ssim.push(v.ssim);
-            dl1.extend(v.depth_l1_cm);
+            per_frame.push(FinalFrame {
+                frame: i,
+                psnr: v.psnr,
+                ssim: v.ssim,
+                depth_l1_cm: v.depth_l1_cm,
+            });
         }
     }
     Ok(FinalEval {
-        frames: psnr.len(),
-        psnr: mean(psnr.iter().copied()),
-        ssim: mean(ssim.iter().copied()),
-        depth_l1_cm: mean(dl1.iter().copied()),
+        frames: per_frame.len(),
+        psnr: mean(per_frame.iter().map(|f| f.psnr)),
+        ssim: mean(per_frame.iter().map(|f| f.ssim)),
+        depth_l1_cm: mean(per_frame.iter().filter_map(|f| f.depth_l1_cm)),
+        per_frame,
     })
 }
 

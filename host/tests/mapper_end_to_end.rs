@@ -375,3 +375,34 @@ fn preflight_finds_a_broken_late_frame_before_mapping() {
     let csv = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
     assert!(csv.lines().nth(1).unwrap().starts_with("14,init,"), "{csv}");
 }
+
+/// Non-finite steps never reach the map: with a learning rate whose Adam step overflows
+/// (`lr / (1 - beta1)` is infinite at the first step) every such step is rejected, counted in
+/// `summary.json`, the learning rates are lowered after `rejected_lr_after` of them in a row,
+/// and the saved map holds only finite values.
+#[test]
+fn nonfinite_steps_are_rejected_counted_and_never_saved() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_room(dir.path());
+    let mut cfg = tiny_config();
+    cfg.adam.beta_lr = 1e38;
+    cfg.mapper.rejected_lr_after = 2;
+    cfg.mapper.rejected_lr_factor = 0.5;
+    cfg.eval.final_every = 0;
+    let out = dir.path().join("out");
+    let s = run_map(&options(data, out.clone(), cfg)).unwrap();
+    assert!(s.rejected_steps >= 2, "{} rejected", s.rejected_steps);
+    assert!(s.lr_reductions >= 1, "{} reductions", s.lr_reductions);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(json["rejected_steps"], s.rejected_steps);
+    assert_eq!(json["lr_reductions"], s.lr_reductions);
+    let (_, map) = load_map(&out.join("map.safetensors")).unwrap();
+    for g in 0..himap_core::model::NUM_GROUPS {
+        let mut all = map.params[g].iter().chain(&map.m[g]).chain(&map.v[g]);
+        assert!(
+            all.all(|x| x.is_finite()),
+            "group {g} holds non-finite values"
+        );
+    }
+}

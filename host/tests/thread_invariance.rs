@@ -2,7 +2,7 @@
 //! reference step for any thread count: gradients, parameters, Adam state and per-ray outputs.
 
 use himap::backend::{ModelData, ParallelCpuBackend};
-use himap::dump::{random_rays, small_config};
+use himap::dump::{nonfinite_sequence, random_rays, small_config};
 use himap_core::model::{Group, LossConfig, ModelLayout, RayResult, NUM_GROUPS};
 use himap_core::render::RenderMode;
 use himap_core::step::{paper_adam, Backend, CpuBackend};
@@ -122,4 +122,80 @@ fn demo_training_reduces_the_loss() {
     let layout = ModelLayout::new(&small_config(RenderMode::SdfDensity)).unwrap();
     let (first, last) = himap::train_demo::run(layout, 60, 256, 2, 1, |_, _, _| {}, 10).unwrap();
     assert!(last < 0.8 * first, "loss {first} -> {last}");
+}
+
+/// A step whose loss or update is not finite is rejected by the reference and the parallel
+/// backend alike: parameters, Adam moments and the step count stay as before it, and the two
+/// end on the same bits.
+#[test]
+fn nonfinite_steps_are_rejected_and_leave_the_state_as_it_was() {
+    let cfg = small_config(RenderMode::SdfDensity);
+    let layout = ModelLayout::new(&cfg).unwrap();
+    let data = ModelData::new(layout, 6).unwrap();
+    let rays = random_rays(120, 3);
+    let loss = loss_for(1, rays.len());
+    let adam = paper_adam();
+    let lr = adam[Group::GeometryMlp as usize].lr;
+    let (mut params, mut m, mut v) = (data.params.clone(), data.m.clone(), data.v.clone());
+    let mut grads: [Vec<i64>; NUM_GROUPS] = layout.group_lens().map(|n| vec![0; n]);
+    let reference = {
+        let groups = himap_core::step::group_states(&mut params, &mut m, &mut v, &mut grads);
+        let mut cpu = CpuBackend::new(layout, groups, adam).unwrap();
+        nonfinite_sequence(&mut cpu, &rays, &loss, lr).unwrap()
+    };
+    let key = |s: &[himap_core::step::StepStats]| -> Vec<(bool, u32, u32, u32)> {
+        s.iter()
+            .map(|s| (s.rejected, s.t, s.rays_hit, s.loss.to_bits()))
+            .collect()
+    };
+    let flags: Vec<(bool, u32)> = reference.iter().map(|s| (s.rejected, s.t)).collect();
+    assert_eq!(flags, vec![(false, 1), (true, 1), (true, 1), (false, 2)]);
+    assert!(reference[1].loss.is_nan() && reference[2].loss.is_finite());
+    assert!(params
+        .iter()
+        .flatten()
+        .chain(m.iter().flatten())
+        .all(|x| x.is_finite()));
+
+    // The same four steps without the two rejected ones give the same state.
+    let (mut p2, mut m2, mut v2) = (data.params.clone(), data.m.clone(), data.v.clone());
+    let mut g2: [Vec<i64>; NUM_GROUPS] = layout.group_lens().map(|n| vec![0; n]);
+    {
+        let groups = himap_core::step::group_states(&mut p2, &mut m2, &mut v2, &mut g2);
+        let mut cpu = CpuBackend::new(layout, groups, adam).unwrap();
+        let mut res = vec![RayResult::default(); rays.len()];
+        for _ in 0..2 {
+            let s = cpu.train_step(&rays, &loss, &mut res).unwrap();
+            assert!(!s.rejected);
+        }
+    }
+    for g in 0..NUM_GROUPS {
+        assert_eq!(
+            bits(&params[g]),
+            bits(&p2[g]),
+            "group {g}: rejected steps changed it"
+        );
+        assert_eq!(bits(&m[g]), bits(&m2[g]));
+        assert_eq!(bits(&v[g]), bits(&v2[g]));
+    }
+
+    for threads in [1, 2] {
+        let mut par = ParallelCpuBackend::new(data.clone(), adam, threads).unwrap();
+        let stats = nonfinite_sequence(&mut par, &rays, &loss, lr).unwrap();
+        assert_eq!(
+            key(&stats),
+            key(&reference),
+            "{threads} threads: step statistics"
+        );
+        let d = par.data();
+        for g in 0..NUM_GROUPS {
+            assert_eq!(
+                bits(&d.params[g]),
+                bits(&params[g]),
+                "{threads} threads, group {g}"
+            );
+            assert_eq!(bits(&d.m[g]), bits(&m[g]));
+            assert_eq!(bits(&d.v[g]), bits(&v[g]));
+        }
+    }
 }

@@ -263,6 +263,23 @@ pub struct AdamPush {
     pub bias_correction2: f32,
 }
 
+/// Push constants of [`loss_check_cs`]: the item range and where a record's loss fields are.
+#[derive(Clone, Copy)]
+#[repr(C)]
+pub struct LossCheckPush {
+    /// Records in this dispatch; invocation `i` checks record `first + i`.
+    pub n: u32,
+    pub first: u32,
+    /// Floats per record ([`RESULT_FLOATS`] or [`PIXEL_RESULT_FLOATS`]).
+    pub stride: u32,
+    /// The two loss fields' offsets in a record (the same twice for a single loss).
+    pub loss_a: u32,
+    pub loss_b: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+    pub _pad2: u32,
+}
+
 /// Push constants of the per-item entry points without extra scalars (render, queries).
 #[derive(Clone, Copy)]
 #[repr(C)]
@@ -361,6 +378,19 @@ impl ParamRead for SplitParams<'_> {
             float_at(self.lo, i)
         } else {
             float_at(self.hi, i - self.split)
+        }
+    }
+}
+
+/// Counts one non-finite value into `status[0]` (the step's rejection flag).
+#[inline(always)]
+fn count_nonfinite(status: &mut [u32]) {
+    if !status.is_empty() {
+        unsafe {
+            atomic_i_add::<u32, { Scope::QueueFamily as u32 }, { Semantics::NONE.bits() }>(
+                &mut status[0],
+                1,
+            );
         }
     }
 }
@@ -1045,18 +1075,55 @@ pub fn color_query_cs(
     out[3 * i + 2] = c[2];
 }
 
-/// Adam on one parameter per invocation (`adam::adam_update` with the gradient converted by
-/// `fixed::from_fixed`), the scalars of the step as push constants.
+/// The [`AdamStep`] of an [`AdamPush`].
+fn adam_step(pc: &AdamPush) -> AdamStep {
+    AdamStep {
+        lr: pc.lr,
+        beta1: pc.beta1,
+        beta2: pc.beta2,
+        eps: pc.eps,
+        bias_correction1: pc.bias_correction1,
+        bias_correction2: pc.bias_correction2,
+    }
+}
+
+/// A step's first finiteness check: counts the result records whose loss is not finite
+/// into `status[0]` (the CPU's `StepStats::rejected` test on the same values).
 ///
-/// - binding 0 `params`, binding 1 `m`, binding 2 `v` (f32), binding 3 `grad` (i64).
+/// - binding 0 `results`; binding 1 `status` (`u32`, zeroed before the step).
 #[spirv(compute(threads(64)))]
-pub fn adam_cs(
+pub fn loss_check_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &LossCheckPush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] results: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] status: &mut [u32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let b = ((pc.first + id.x) * pc.stride) as usize;
+    let (a, c) = (b + pc.loss_a as usize, b + pc.loss_b as usize);
+    if a < results.len()
+        && c < results.len()
+        && !(adam::is_finite(results[a]) && adam::is_finite(results[c]))
+    {
+        count_nonfinite(status);
+    }
+}
+
+/// A step's second finiteness check: counts the parameters whose Adam update would not be
+/// finite (`adam::adam_update_is_finite`) into `status[0]`; writes nothing else.
+///
+/// - bindings 0..=3 as [`adam_cs`] (read only here); binding 4 `status`.
+#[spirv(compute(threads(64)))]
+pub fn adam_check_cs(
     #[spirv(global_invocation_id)] id: UVec3,
     #[spirv(push_constant)] pc: &AdamPush,
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] params: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] m: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] v: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] params: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] m: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] v: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad: &[i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] status: &mut [u32],
 ) {
     if id.x >= pc.n {
         return;
@@ -1065,14 +1132,36 @@ pub fn adam_cs(
     if i >= params.len() || i >= m.len() || i >= v.len() || i >= grad.len() {
         return;
     }
-    let s = AdamStep {
-        lr: pc.lr,
-        beta1: pc.beta1,
-        beta2: pc.beta2,
-        eps: pc.eps,
-        bias_correction1: pc.bias_correction1,
-        bias_correction2: pc.bias_correction2,
-    };
+    let s = adam_step(pc);
+    if !adam::adam_update_is_finite(&s, params[i], m[i], v[i], fixed::from_fixed(grad[i])) {
+        count_nonfinite(status);
+    }
+}
+
+/// Adam on one parameter per invocation (`adam::adam_update` with the gradient converted by
+/// `fixed::from_fixed`), the scalars of the step as push constants; nothing when the step's
+/// checks counted a non-finite value (the step is rejected).
+///
+/// - binding 0 `params`, binding 1 `m`, binding 2 `v` (f32), binding 3 `grad` (i64);
+/// - binding 4 `status` ([`loss_check_cs`], [`adam_check_cs`]).
+#[spirv(compute(threads(64)))]
+pub fn adam_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &AdamPush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] params: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] m: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] v: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad: &[i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] status: &[u32],
+) {
+    if id.x >= pc.n || status.is_empty() || status[0] != 0 {
+        return;
+    }
+    let i = (pc.first + id.x) as usize;
+    if i >= params.len() || i >= m.len() || i >= v.len() || i >= grad.len() {
+        return;
+    }
+    let s = adam_step(pc);
     let mut p = params[i];
     let mut mi = m[i];
     let mut vi = v[i];

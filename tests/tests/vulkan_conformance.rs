@@ -9,7 +9,7 @@
 //! `HIMAP_REQUIRE_VULKAN=1` (set by CI), which makes them fail with the reason.
 
 use himap::backend::{ModelData, ParallelCpuBackend};
-use himap::dump::{random_rays, small_config};
+use himap::dump::{nonfinite_sequence, random_rays, small_config};
 use himap::synth::{synth_intrinsics, synth_pose, Scene};
 use himap_core::adam::AdamConfig;
 use himap_core::camera::{Intrinsics, Pose};
@@ -243,6 +243,53 @@ fn one_step_with_early_termination_matches_cpu() {
     one_step_with(RenderMode::SdfDensity, &cfg);
 }
 
+/// `set_min_transmittance` between steps (the mapper's initialisation threshold) changes the
+/// GPU's compositing exactly as the CPU's: results of every step and the final parameters.
+#[test]
+fn termination_threshold_set_between_steps_matches_cpu() {
+    let (data, rays) = setup(RenderMode::SdfDensity, 5, 200);
+    let adam = test_adam();
+    let Some(mut gpu) = vulkan_or_skip(&data, adam) else {
+        return;
+    };
+    let mut cpu_state = CpuState::new(&data);
+    let mut cpu = cpu_state.backend(adam);
+    let loss = loss_config(2, rays.len());
+    // the threshold bites: it changes the GPU's renders of this field
+    let mut uncut = vec![RayResult::default(); rays.len()];
+    let mut cut = uncut.clone();
+    gpu.render(&rays, &mut uncut).unwrap();
+    gpu.set_min_transmittance(0.05).unwrap();
+    gpu.render(&rays, &mut cut).unwrap();
+    let differ = uncut
+        .iter()
+        .zip(&cut)
+        .filter(|(a, b)| a.depth != b.depth)
+        .count();
+    assert!(differ >= 20, "only {differ} renders changed");
+    for (step, t) in [0.0, 0.05, 0.0].into_iter().enumerate() {
+        cpu.set_min_transmittance(t).unwrap();
+        gpu.set_min_transmittance(t).unwrap();
+        let mut rc = vec![RayResult::default(); rays.len()];
+        let mut rg = vec![RayResult::default(); rays.len()];
+        cpu.train_step(&rays, &loss, &mut rc).unwrap();
+        gpu.train_step(&rays, &loss, &mut rg).unwrap();
+        assert_same_f32(
+            &format!("step {step} results"),
+            &result_floats(&rc),
+            &result_floats(&rg),
+        );
+        assert_eq!(gpu.layout().config.min_transmittance, t);
+    }
+    assert!(cpu.set_min_transmittance(1.0).is_err() && gpu.set_min_transmittance(-0.1).is_err());
+    for g in Group::ALL {
+        let i = g as usize;
+        let mut p = vec![0.0f32; cpu_state.params[i].len()];
+        gpu.read_params(g, &mut p).unwrap();
+        assert_same_f32(&format!("{} params", g.name()), &cpu_state.params[i], &p);
+    }
+}
+
 fn one_step(mode: RenderMode) {
     one_step_with(mode, &small_config(mode));
 }
@@ -309,6 +356,42 @@ fn one_step_with(mode: RenderMode, cfg: &ModelConfig) {
             );
             assert_ne!(p, data.params[i], "{} did not move", g.name());
         }
+    }
+}
+
+/// Non-finite steps (a NaN target colour, an overflowing learning rate) are rejected on the
+/// GPU exactly where the CPU rejects them (`loss_check_cs`, `adam_check_cs`), with the same
+/// statistics and the same parameters and moments afterwards.
+#[test]
+fn nonfinite_steps_are_rejected_like_the_cpu() {
+    let (data, rays) = setup(RenderMode::SdfDensity, 8, 150);
+    let adam = test_adam();
+    let Some(mut gpu) = vulkan_or_skip(&data, adam) else {
+        return;
+    };
+    let lr = adam[Group::GeometryMlp as usize].lr;
+    let loss = loss_config(4, rays.len());
+    let mut cpu_state = CpuState::new(&data);
+    let sc = nonfinite_sequence(&mut cpu_state.backend(adam), &rays, &loss, lr).unwrap();
+    let sg = nonfinite_sequence(&mut gpu, &rays, &loss, lr).unwrap();
+    let key = |s: &[himap_core::step::StepStats]| -> Vec<(bool, u32, u32, u32)> {
+        s.iter()
+            .map(|s| (s.rejected, s.t, s.rays_hit, s.loss.to_bits()))
+            .collect()
+    };
+    assert_eq!(key(&sg), key(&sc));
+    let rejected: Vec<bool> = sc.iter().map(|s| s.rejected).collect();
+    assert_eq!(rejected, vec![false, true, true, false]);
+    for g in Group::ALL {
+        let i = g as usize;
+        let mut p = vec![0.0f32; cpu_state.params[i].len()];
+        let (mut m, mut v) = (p.clone(), p.clone());
+        gpu.read_params(g, &mut p).unwrap();
+        gpu.read_adam(g, &mut m, &mut v).unwrap();
+        assert_same_f32(&format!("{} params", g.name()), &cpu_state.params[i], &p);
+        assert_same_f32(&format!("{} adam m", g.name()), &cpu_state.m[i], &m);
+        assert_same_f32(&format!("{} adam v", g.name()), &cpu_state.v[i], &v);
+        assert!(p.iter().all(|x| x.is_finite()), "{}: non-finite", g.name());
     }
 }
 

@@ -61,6 +61,8 @@ struct Pipelines {
     pixel_rays: Pipeline,
     pixel_train: Pipeline,
     adam: Pipeline,
+    loss_check: Pipeline,
+    adam_check: Pipeline,
     sdf: Pipeline,
     color: Pipeline,
 }
@@ -152,6 +154,9 @@ pub struct VulkanBackend {
     store: ImageStore,
     /// Staging for device-local buffers that are not host-visible.
     staging: Option<Buffer>,
+    /// The step's count of non-finite values (`loss_check_cs`, `adam_check_cs`; host-visible,
+    /// zeroed at the start of every step): non-zero rejects the step.
+    status: Buffer,
     pipelines: Pipelines,
     _module: ShaderModule,
     gpu: Gpu,
@@ -163,6 +168,21 @@ fn f32_bytes(v: &[f32]) -> Vec<u8> {
 
 fn u32_bytes(v: &[u32]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// The model words the kernels read: the layout, then where each grid's parameters split
+/// across two bindings (`u32::MAX`: one binding), from the grids' part lengths.
+fn model_words(layout: &ModelLayout, grid_parts: [&[usize]; 2]) -> Vec<u32> {
+    let mut w = vec![0u32; words::MODEL_WORDS];
+    words::model_layout_to_words(layout, &mut w, 0);
+    for (k, parts) in grid_parts.iter().enumerate() {
+        w[words::SPLITS + k] = if parts.len() > 1 {
+            parts[0] as u32
+        } else {
+            u32::MAX
+        };
+    }
+    w
 }
 
 /// Makes sure `slot` holds a host-visible buffer of at least `bytes`.
@@ -375,19 +395,13 @@ impl VulkanBackend {
             ray_render: Pipeline::new(&device, &module, entry::RAY_RENDER, 5, 16)?,
             pixel_rays: Pipeline::new(&device, &module, entry::PIXEL_RAYS, 4, 16)?,
             pixel_train: Pipeline::new(&device, &module, entry::PIXEL_TRAIN, 9, 16)?,
-            adam: Pipeline::new(&device, &module, entry::ADAM, 4, 32)?,
+            adam: Pipeline::new(&device, &module, entry::ADAM, 5, 32)?,
+            loss_check: Pipeline::new(&device, &module, entry::LOSS_CHECK, 2, 32)?,
+            adam_check: Pipeline::new(&device, &module, entry::ADAM_CHECK, 5, 32)?,
             sdf: Pipeline::new(&device, &module, entry::SDF_QUERY, 10, 16)?,
             color: Pipeline::new(&device, &module, entry::COLOR_QUERY, 10, 16)?,
         };
-        let mut w = vec![0u32; words::MODEL_WORDS];
-        words::model_layout_to_words(&layout, &mut w, 0);
-        for k in 0..2 {
-            w[words::SPLITS + k] = if part_lens[k].len() > 1 {
-                part_lens[k][0] as u32
-            } else {
-                u32::MAX
-            };
-        }
+        let w = model_words(&layout, [&part_lens[0], &part_lens[1]]);
         let mut staging = None;
         let mut model_words = Buffer::new(
             &device,
@@ -456,6 +470,7 @@ impl VulkanBackend {
             window: None,
             samples: None,
             images: Buffer::new(&device, 16, Memory::Device, "the image slots")?,
+            status: Buffer::new(&device, 16, Memory::Host, "the step's finiteness status")?,
             store: ImageStore::default(),
             staging,
             pipelines,
@@ -671,6 +686,19 @@ impl VulkanBackend {
         }
     }
 
+    /// After a step's submission: when its checks counted a non-finite value, Adam did
+    /// nothing, so the step count goes back and `stats` says the step was rejected.
+    fn finish_step(&mut self, mut stats: StepStats) -> StepStats {
+        let mut b = [0u8; 4];
+        self.status.read_mapped(0, &mut b);
+        if u32::from_le_bytes(b) != 0 {
+            self.t -= 1;
+            stats.rejected = true;
+            stats.t = self.t;
+        }
+        stats
+    }
+
     fn adam_steps(&mut self) -> [AdamStep; NUM_GROUPS] {
         self.t += 1;
         core::array::from_fn(|g| AdamStep::new(&self.adam[g], self.t))
@@ -707,17 +735,20 @@ struct Passes<'a> {
     model_words: &'a Buffer,
     rays: &'a Buffer,
     samples: &'a Buffer,
+    /// The step's non-finite count.
+    status: &'a Buffer,
     /// Sample records of the batch (rays x samples per ray).
     records: usize,
     max_groups: u32,
 }
 
 impl<'a> Passes<'a> {
-    /// Zeroes every gradient buffer.
+    /// Zeroes every gradient buffer and the step's non-finite count.
     fn zero_grads(&self, r: &mut Recorder<'a>) {
         for p in self.groups.iter().flat_map(|g| g.parts.iter()) {
             r.zero(&p.grad);
         }
+        r.zero(self.status);
         r.barrier();
     }
 
@@ -768,16 +799,51 @@ impl<'a> Passes<'a> {
         Ok(())
     }
 
-    /// `adam_cs` over every part of every group.
+    /// The step's checks and update: `loss_check_cs` over the `n` result records of
+    /// `stride` floats (loss fields at `losses`), then `adam_check_cs` and `adam_cs` over
+    /// every part of every group (`adam_cs` does nothing when a check counted anything).
+    fn checked_adam(
+        &self,
+        r: &mut Recorder<'a>,
+        steps: &[AdamStep; NUM_GROUPS],
+        results: &'a Buffer,
+        n: usize,
+        stride: usize,
+        losses: (usize, usize),
+    ) -> Result<(), VulkanError> {
+        let pipeline = &self.pipelines.loss_check;
+        let set = r.bind(pipeline, &[results, self.status])?;
+        dispatch_items(r, pipeline, &set, n, self.max_groups, |first, count| {
+            push_bytes([
+                count,
+                first,
+                stride as u32,
+                losses.0 as u32,
+                losses.1 as u32,
+                0,
+                0,
+                0,
+            ])
+        });
+        r.barrier();
+        self.adam(r, steps, &self.pipelines.adam_check)?;
+        r.barrier();
+        self.adam(r, steps, &self.pipelines.adam)
+    }
+
+    /// `pipeline` (`adam_cs` or `adam_check_cs`) over every part of every group.
     fn adam(
         &self,
         r: &mut Recorder<'a>,
         steps: &[AdamStep; NUM_GROUPS],
+        pipeline: &'a Pipeline,
     ) -> Result<(), VulkanError> {
-        let pipeline = &self.pipelines.adam;
         for (g, s) in self.groups.iter().zip(steps.iter()) {
             for part in &g.parts {
-                let set = r.bind(pipeline, &[&part.params, &part.m, &part.v, &part.grad])?;
+                let set = r.bind(
+                    pipeline,
+                    &[&part.params, &part.m, &part.v, &part.grad, self.status],
+                )?;
                 dispatch_items(
                     r,
                     pipeline,
@@ -823,6 +889,7 @@ impl VulkanBackend {
             model_words: &self.model_words,
             rays: input,
             samples,
+            status: &self.status,
             records,
             max_groups: self.max_groups,
         };
@@ -891,10 +958,11 @@ impl Backend for VulkanBackend {
                 r.barrier();
                 passes.sample_backward(r)?;
             }
-            passes.adam(r, &steps)
+            passes.checked_adam(r, &steps, output, n, RESULT_FLOATS, (5, 5))
         })?;
         self.read_results(results);
-        Ok(summarize(results, self.t))
+        let stats = summarize(results, self.t);
+        Ok(self.finish_step(stats))
     }
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), VulkanError> {
@@ -1070,6 +1138,7 @@ impl Backend for VulkanBackend {
             images,
             pipelines,
             max_groups,
+            status,
             ..
         } = self;
         let (Some(input), Some(output), Some(samples), Some(pixels), Some(window)) = (
@@ -1088,6 +1157,7 @@ impl Backend for VulkanBackend {
             model_words,
             rays: input,
             samples,
+            status,
             records,
             max_groups: *max_groups,
         };
@@ -1118,7 +1188,7 @@ impl Backend for VulkanBackend {
                 r.barrier();
                 passes.sample_backward(r)?;
             }
-            passes.adam(r, &steps)
+            passes.checked_adam(r, &steps, output, n, PIXEL_RESULT_FLOATS, (5, 6))
         })?;
         let f = self.read_floats(n * PIXEL_RESULT_FLOATS);
         for (r, v) in results
@@ -1134,7 +1204,8 @@ impl Backend for VulkanBackend {
                 warp_views: v[7] as u32,
             };
         }
-        Ok(summarize_pixels(results, self.t))
+        let stats = summarize_pixels(results, self.t);
+        Ok(self.finish_step(stats))
     }
 
     fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), VulkanError> {
@@ -1144,6 +1215,27 @@ impl Backend for VulkanBackend {
             );
         }
         self.adam[group as usize].lr = lr;
+        Ok(())
+    }
+
+    fn adam_lr(&self, group: Group) -> f32 {
+        self.adam[group as usize].lr
+    }
+
+    fn set_min_transmittance(&mut self, t: f32) -> Result<(), VulkanError> {
+        let mut layout = self.layout;
+        layout.set_min_transmittance(t)?;
+        let parts =
+            |g: usize| -> Vec<usize> { self.groups[g].parts.iter().map(|p| p.len).collect() };
+        let (p0, p1) = (parts(0), parts(1));
+        let w = model_words(&layout, [&p0, &p1]);
+        upload(
+            &mut self.gpu,
+            &mut self.staging,
+            &mut self.model_words,
+            &u32_bytes(&w),
+        )?;
+        self.layout = layout;
         Ok(())
     }
 }

@@ -45,6 +45,8 @@ pub mod entry {
     pub const PIXEL_RAYS: &str = "pixel_rays_cs";
     pub const PIXEL_TRAIN: &str = "pixel_train_cs";
     pub const ADAM: &str = "adam_cs";
+    pub const LOSS_CHECK: &str = "loss_check_cs";
+    pub const ADAM_CHECK: &str = "adam_check_cs";
     pub const SDF_QUERY: &str = "sdf_query_cs";
     pub const COLOR_QUERY: &str = "color_query_cs";
 }
@@ -160,7 +162,9 @@ mod tests {
             (entry::RAY_RENDER, 5),
             (entry::PIXEL_RAYS, 4),
             (entry::PIXEL_TRAIN, 9),
-            (entry::ADAM, 4),
+            (entry::ADAM, 5),
+            (entry::LOSS_CHECK, 2),
+            (entry::ADAM_CHECK, 5),
             (entry::SDF_QUERY, 10),
             (entry::COLOR_QUERY, 10),
         ]
@@ -245,18 +249,23 @@ mod tests {
         assert_eq!((glsl_fma, frem), (0, 0));
     }
 
+    /// Gradient atomics add 64-bit fixed-point integers; the only other atomics are the
+    /// 32-bit counts of non-finite values (`loss_check_cs`, `adam_check_cs`), which add 1.
     #[test]
     fn fixed_accumulate_uses_64_bit_atomics() {
         let m = module();
-        let i64_types: BTreeSet<u32> = m
-            .types_global_values
-            .iter()
-            .filter(|t| {
-                t.class.opcode == Op::TypeInt
-                    && t.operands.first() == Some(&Operand::LiteralBit32(64))
-            })
-            .filter_map(|t| t.result_id)
-            .collect();
+        let int_types = |bits: u32| -> BTreeSet<u32> {
+            m.types_global_values
+                .iter()
+                .filter(|t| {
+                    t.class.opcode == Op::TypeInt
+                        && t.operands.first() == Some(&Operand::LiteralBit32(bits))
+                })
+                .filter_map(|t| t.result_id)
+                .collect()
+        };
+        let i64_types = int_types(64);
+        let counts = int_types(32);
         let atomics: Vec<_> = m
             .functions
             .iter()
@@ -265,9 +274,21 @@ mod tests {
             .filter(|i| i.class.opcode == Op::AtomicIAdd)
             .collect();
         assert!(!atomics.is_empty());
-        for a in atomics {
-            assert!(i64_types.contains(&a.result_type.unwrap()), "{a:?}");
-        }
+        let wide = atomics
+            .iter()
+            .filter(|a| i64_types.contains(&a.result_type.unwrap()))
+            .count();
+        let narrow = atomics
+            .iter()
+            .filter(|a| counts.contains(&a.result_type.unwrap()))
+            .count();
+        assert!(wide > 0, "no 64-bit atomics");
+        assert_eq!(wide + narrow, atomics.len(), "atomics of another type");
+        // one count per check entry point (inlined once each)
+        assert!(
+            narrow <= 2,
+            "{narrow} 32-bit atomics: only the two checks count"
+        );
     }
 
     #[test]
