@@ -164,6 +164,7 @@ pub fn adam_update_fixed(
 }
 
 #[cfg(test)]
+#[allow(clippy::disallowed_methods)] // std's functions as test oracles
 mod tests {
     use super::*;
 

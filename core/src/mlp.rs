@@ -475,6 +475,7 @@ pub fn mlp_backward<P: ParamRead + ?Sized, S: GradSink>(
 }
 
 #[cfg(test)]
+#[allow(clippy::disallowed_methods)] // std's functions as test oracles
 mod tests {
     use super::*;
     use crate::{F32Sink, NullSink};
