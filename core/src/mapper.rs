@@ -366,20 +366,57 @@ pub struct UpdateReport {
     pub keyframes: u32,
 }
 
+/// A frame the mapper holds: its id (push order), its image slot in the backend and its pose.
 #[derive(Clone, Copy, Debug, PartialEq)]
-struct Entry {
-    id: u32,
-    slot: u32,
-    pose: Pose,
+pub struct HeldFrame {
+    pub id: u32,
+    pub slot: u32,
+    pub pose: Pose,
 }
 
-const EMPTY: Entry = Entry {
+const EMPTY: HeldFrame = HeldFrame {
     id: 0,
     slot: 0,
     pose: Pose::IDENTITY,
 };
 
-const MAX_SLOTS: usize = MAX_LOCAL + MAX_KEYFRAMES;
+/// Most image slots a mapper hands out.
+pub const MAX_SLOTS: usize = MAX_LOCAL + MAX_KEYFRAMES;
+
+/// Everything of a [`Mapper`] that lasts from one pushed frame to the next (the window and the
+/// overlap test are rebuilt at every update): [`Mapper::state`] takes it, [`Mapper::restore`]
+/// continues from it bit for bit, given the backend's model state and the images of the
+/// held frames ([`MapperState::held`]) in their slots.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MapperState {
+    /// Local frames (oldest first) and the keyframe cache (`local_len`, `kf_len` valid).
+    pub local: [HeldFrame; MAX_LOCAL],
+    pub local_len: usize,
+    pub keyframes: [HeldFrame; MAX_KEYFRAMES],
+    pub kf_len: usize,
+    /// Frames pushed since the last update.
+    pub pending: usize,
+    /// Free image slots (a stack; `free_len` valid).
+    pub free: [u32; MAX_SLOTS],
+    pub free_len: usize,
+    pub initialized: bool,
+    pub pushed: u32,
+    pub total_iters: u32,
+    pub rejected_steps: u32,
+    pub rejected_run: u32,
+    pub lr_reductions: u32,
+    /// [`SplitMix::state`] of the sampling generator.
+    pub rng: u64,
+}
+
+impl MapperState {
+    /// The frames whose images the backend holds: local frames, then keyframes.
+    pub fn held(&self) -> impl Iterator<Item = &HeldFrame> + '_ {
+        self.local[..self.local_len.min(MAX_LOCAL)]
+            .iter()
+            .chain(self.keyframes[..self.kf_len.min(MAX_KEYFRAMES)].iter())
+    }
+}
 
 /// The online mapper. See the module documentation for the schedule.
 pub struct Mapper<'a, B: Backend> {
@@ -388,11 +425,11 @@ pub struct Mapper<'a, B: Backend> {
     k: Intrinsics,
     store: ImageStore,
     /// Local frames, oldest first.
-    local: [Entry; MAX_LOCAL],
+    local: [HeldFrame; MAX_LOCAL],
     local_len: usize,
     /// Frames pushed since the last update.
     pending: usize,
-    keyframes: [Entry; MAX_KEYFRAMES],
+    keyframes: [HeldFrame; MAX_KEYFRAMES],
     kf_len: usize,
     free: [u32; MAX_SLOTS],
     free_len: usize,
@@ -480,6 +517,68 @@ impl<'a, B: Backend> Mapper<'a, B> {
             overlap_out: [RayResult::default(); MAX_OVERLAP_PIXELS],
             candidates: [0; MAX_KEYFRAMES],
         })
+    }
+
+    /// What the mapper holds between pushed frames (see [`MapperState`]).
+    pub fn state(&self) -> MapperState {
+        MapperState {
+            local: self.local,
+            local_len: self.local_len,
+            keyframes: self.keyframes,
+            kf_len: self.kf_len,
+            pending: self.pending,
+            free: self.free,
+            free_len: self.free_len,
+            initialized: self.initialized,
+            pushed: self.pushed,
+            total_iters: self.total_iters,
+            rejected_steps: self.rejected_steps,
+            rejected_run: self.rejected_run,
+            lr_reductions: self.lr_reductions,
+            rng: self.rng.state(),
+        }
+    }
+
+    /// A mapper that continues from `state` (taken by [`Self::state`] with the same `cfg`
+    /// and intrinsics) over a backend that holds the model as it was then and the images of
+    /// `state.held()` in their slots. Errors: the checks of [`Self::new`], and a state that
+    /// does not fit `cfg` (lengths, slots).
+    pub fn restore(
+        backend: B,
+        cfg: MapperConfig,
+        k: Intrinsics,
+        pixels: &'a mut [PixelSample],
+        results: &'a mut [PixelResult],
+        state: &MapperState,
+    ) -> Result<Self, Error> {
+        let mut m = Self::new(backend, cfg, k, pixels, results)?;
+        let slots = cfg.slots_needed();
+        let ok = state.local_len <= MAX_LOCAL
+            && state.kf_len <= cfg.max_keyframes as usize
+            && state.free_len <= slots as usize
+            && state.local_len + state.kf_len + state.free_len == slots as usize
+            && state.held().all(|e| e.slot < slots)
+            && state.free[..state.free_len].iter().all(|&s| s < slots);
+        if !ok {
+            return Err(Error::InvalidConfig(
+                "mapper: the saved state does not fit this configuration",
+            ));
+        }
+        m.local = state.local;
+        m.local_len = state.local_len;
+        m.keyframes = state.keyframes;
+        m.kf_len = state.kf_len;
+        m.pending = state.pending;
+        m.free = state.free;
+        m.free_len = state.free_len;
+        m.initialized = state.initialized;
+        m.pushed = state.pushed;
+        m.total_iters = state.total_iters;
+        m.rejected_steps = state.rejected_steps;
+        m.rejected_run = state.rejected_run;
+        m.lr_reductions = state.lr_reductions;
+        m.rng = SplitMix::new(state.rng);
+        Ok(m)
     }
 
     pub fn backend(&self) -> &B {
@@ -579,7 +678,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
             self.free_len += 1;
             return Err(MapperError::Backend(e));
         }
-        self.local[self.local_len] = Entry {
+        self.local[self.local_len] = HeldFrame {
             id: self.pushed,
             slot,
             pose,
@@ -687,7 +786,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
         }
     }
 
-    fn add_to_window(&mut self, e: Entry) {
+    fn add_to_window(&mut self, e: HeldFrame) {
         if self.win_len < MAX_WINDOW {
             self.win_ids[self.win_len] = e.id;
             self.win_poses[self.win_len] = e.pose;
@@ -727,7 +826,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
         Ok(())
     }
 
-    fn add_keyframe(&mut self, e: Entry) {
+    fn add_keyframe(&mut self, e: HeldFrame) {
         let cap = self.cfg.max_keyframes as usize;
         if cap == 0 {
             self.free_slot(e.slot);
@@ -1519,6 +1618,63 @@ mod tests {
             assert_eq!(m.backend().min_t, want);
             assert_eq!(m.backend().layout.config.min_transmittance, 0.0);
         }
+    }
+
+    #[test]
+    fn a_restored_mapper_continues_like_the_original() {
+        let mut c = cfg();
+        c.max_keyframes = 4; // the cache thins on the way
+        let img = image();
+        let (mut px, mut res) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        let mut a = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut a, 47);
+        let state = a.state();
+        assert!(
+            state.initialized && state.kf_len > 0 && state.pending > 0,
+            "{state:?}"
+        );
+        let before = a.backend().calls.len();
+        push_n(&mut a, 20);
+        let (mut px2, mut res2) = (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        );
+        let mut b = Mapper::restore(
+            Mock::new(c.slots_needed()),
+            c,
+            intr(),
+            &mut px2,
+            &mut res2,
+            &state,
+        )
+        .unwrap();
+        assert_eq!(b.state(), state);
+        for _ in 0..20 {
+            let id = b.frames_pushed();
+            b.push_frame(&img, pose(id)).unwrap();
+        }
+        let (ca, cb) = (&a.backend().calls[before..], &b.backend().calls);
+        assert!(!cb.is_empty());
+        assert_eq!(ca.len(), cb.len());
+        for (x, y) in ca.iter().zip(cb) {
+            assert_eq!((&x.slots, &x.pixels), (&y.slots, &y.pixels));
+        }
+        assert_eq!(a.state(), b.state());
+        // a state that does not fit the configuration is an error
+        let mut bad = state.clone();
+        bad.free_len += 1;
+        assert!(Mapper::restore(
+            Mock::new(c.slots_needed()),
+            c,
+            intr(),
+            &mut px2,
+            &mut res2,
+            &bad
+        )
+        .is_err());
     }
 
     #[test]

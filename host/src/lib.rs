@@ -11,6 +11,7 @@ pub mod atomic;
 
 pub mod backend;
 pub mod bench;
+pub mod checkpoint;
 pub mod config;
 pub mod dump;
 pub mod geo_init;

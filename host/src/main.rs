@@ -49,6 +49,15 @@ enum Command {
         /// first iteration, so a broken frame fails in the first second, not at its turn).
         #[arg(long)]
         no_preflight: bool,
+        /// Write OUT/checkpoint.safetensors (map, Adam state, mapper state, metrics so far)
+        /// after every N pushed frames, atomically (0 = never).
+        #[arg(long, value_name = "N", default_value_t = 0)]
+        checkpoint_every: usize,
+        /// Continue an interrupted run from its checkpoint (the file, or the folder holding
+        /// checkpoint.safetensors) with the same dataset, frames and configuration; the
+        /// result equals the uninterrupted run bit for bit.
+        #[arg(long, value_name = "DIR")]
+        resume: Option<PathBuf>,
         /// Print the effective configuration (TOML) and exit.
         #[arg(long)]
         print_config: bool,
@@ -343,6 +352,8 @@ fn run() -> anyhow::Result<()> {
             threads,
             print_config,
             no_preflight,
+            checkpoint_every,
+            resume,
         } => {
             let base = himap::config::Config::preset(&preset)?;
             let cfg = match &config {
@@ -372,6 +383,8 @@ fn run() -> anyhow::Result<()> {
                 progress: true,
                 preflight: !no_preflight,
                 stop_after: None,
+                checkpoint_every,
+                resume,
             };
             let s = himap::mapper_cli::run_map(&opts)?;
             println!("{}", himap::mapper_cli::summary_table(&s));

@@ -23,9 +23,10 @@ use himap_core::mapping::{pack_rgba8, PixelResult, PixelSample};
 use himap_core::model::{Group, ModelLayout, Ray, RayResult};
 use himap_core::step::{Backend, ImageStore};
 use himap_core::Aabb;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::backend::{ModelData, ParallelCpuBackend};
+use crate::checkpoint::{self, DatasetId, RunState};
 use crate::config::Config;
 use crate::dataset::{self, LoadOptions, RgbImage};
 use crate::select::{decide, BackendChoice, MapBackend};
@@ -52,6 +53,11 @@ pub struct MapOptions {
     /// Stop mapping once this many frames are pushed, without the final flush (the map as it
     /// stood then is evaluated and saved). `None` maps the whole selection.
     pub stop_after: Option<usize>,
+    /// Write `checkpoint.safetensors` into `out` after every this many pushed frames (0 =
+    /// never; see [`crate::checkpoint`]).
+    pub checkpoint_every: usize,
+    /// Continue from this checkpoint (a file, or the folder holding it).
+    pub resume: Option<PathBuf>,
 }
 
 impl MapOptions {
@@ -71,12 +77,14 @@ impl MapOptions {
             progress: false,
             preflight: true,
             stop_after: None,
+            checkpoint_every: 0,
+            resume: None,
         }
     }
 }
 
 /// One row of `metrics.csv`.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct UpdateMetrics {
     /// Index of the update's newest frame in the source sequence.
     pub frame: usize,
@@ -242,6 +250,16 @@ pub fn pack_image(img: &RgbImage) -> Vec<u32> {
 
 /// Writes the map: parameters, Adam moments, configuration and box.
 pub fn save_map(path: &Path, config: &Config, data: &ModelData) -> anyhow::Result<()> {
+    save_map_with(path, config, data, &[])
+}
+
+/// [`save_map`] with more metadata entries (a checkpoint's run state).
+pub fn save_map_with(
+    path: &Path,
+    config: &Config,
+    data: &ModelData,
+    extra: &[(&str, String)],
+) -> anyhow::Result<()> {
     use safetensors::tensor::{Dtype, TensorView};
     let mut bufs: Vec<(String, Vec<u8>, usize)> = Vec::new();
     for g in Group::ALL {
@@ -267,6 +285,9 @@ pub fn save_map(path: &Path, config: &Config, data: &ModelData) -> anyhow::Resul
         serde_json::to_string(&[aabb.min, aabb.max])?,
     );
     meta.insert("adam_t".to_string(), data.t.to_string());
+    for (k, v) in extra {
+        meta.insert(k.to_string(), v.clone());
+    }
     let bytes = safetensors::serialize(views, Some(meta))
         .with_context(|| format!("serialising {}", path.display()))?;
     crate::atomic::write_bytes_atomic(path, &bytes)
@@ -274,6 +295,14 @@ pub fn save_map(path: &Path, config: &Config, data: &ModelData) -> anyhow::Resul
 
 /// Reads a map written by [`save_map`]: its configuration and model data.
 pub fn load_map(path: &Path) -> anyhow::Result<(Config, ModelData)> {
+    let (config, data, _) = load_map_with_meta(path)?;
+    Ok((config, data))
+}
+
+/// [`load_map`] and every metadata entry of the file.
+pub fn load_map_with_meta(
+    path: &Path,
+) -> anyhow::Result<(Config, ModelData, HashMap<String, String>)> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
     let (_, header) = safetensors::SafeTensors::read_metadata(&bytes)
         .with_context(|| format!("{}: not a safetensors file", path.display()))?;
@@ -315,7 +344,7 @@ pub fn load_map(path: &Path) -> anyhow::Result<(Config, ModelData)> {
         }
     }
     data.t = t;
-    Ok((config, data))
+    Ok((config, data, meta))
 }
 
 /// A blue-to-red colour map of depth in [lo, hi] (black where there is none).
@@ -717,8 +746,45 @@ where
     let mcfg = cfg.mapper_config()?;
     let mut px = vec![PixelSample::default(); mcfg.pixels as usize];
     let mut res = vec![PixelResult::default(); mcfg.pixels as usize];
-    let mut mapper = Mapper::new(backend, mcfg, k, &mut px, &mut res)
-        .map_err(|e| anyhow::anyhow!("mapper: {e}"))?;
+    let resumed = match &opts.resume {
+        Some(path) => Some(checkpoint::load(
+            path,
+            cfg,
+            &opts.dataset,
+            n,
+            (k.width, k.height),
+            |m| (0..m).map(|i| Ok(ds.frame(i)?.pose)).collect(),
+        )?),
+        None => None,
+    };
+    let mut mapper = match &resumed {
+        None => Mapper::new(backend, mcfg, k, &mut px, &mut res)
+            .map_err(|e| anyhow::anyhow!("mapper: {e}"))?,
+        Some((run, data)) => {
+            let mut backend = backend;
+            backend.import(data)?;
+            for (g, lr) in Group::ALL.into_iter().zip(run.lrs()?) {
+                backend.set_adam_lr(g, lr)?;
+            }
+            let state = run.mapper_state()?;
+            let mut m = Mapper::restore(backend, mcfg, k, &mut px, &mut res, &state)
+                .map_err(|e| anyhow::anyhow!("mapper: {e}"))?;
+            // the images of the frames the mapper holds, back into their slots
+            for e in state.held() {
+                let frame = ds.frame(e.id as usize)?;
+                m.backend_mut()
+                    .upload_frame(e.slot, &pack_image(&frame.rgb))?;
+            }
+            if opts.progress {
+                eprintln!(
+                    "resuming after frame {} of {n} from {}",
+                    run.pushed,
+                    checkpoint::path_of(opts.resume.as_deref().unwrap_or(Path::new("."))).display()
+                );
+            }
+            m
+        }
+    };
 
     let ek = {
         let w = ((k.width as f32 * cfg.eval.scale).round() as u32).max(1);
@@ -735,7 +801,16 @@ where
     // metrics.csv: the header now, then rewritten whole (atomically) after every update, so a
     // run killed halfway keeps what it measured.
     let csv_path = opts.out.join("metrics.csv");
-    write_metrics(&csv_path, &[])?;
+    let (mut rows, mut mapping_s, mut outside_box, start) = match &resumed {
+        Some((run, _)) => (
+            run.rows.clone(),
+            run.mapping_s,
+            run.outside_box,
+            run.pushed as usize,
+        ),
+        None => (Vec::new(), 0.0f64, 0usize, 0usize),
+    };
+    write_metrics(&csv_path, &rows)?;
     // Without a terminal (a log file, a service) the progress bar draws nothing: plain lines
     // every few seconds instead.
     let plain = opts.progress && !std::io::stderr().is_terminal();
@@ -753,9 +828,12 @@ where
     } else {
         indicatif::ProgressBar::hidden()
     };
-    let mut rows: Vec<UpdateMetrics> = Vec::new();
-    let mut mapping_s = 0.0f64;
-    let mut last_psnr = f64::NAN;
+    let mut last_psnr = rows
+        .iter()
+        .rev()
+        .map(|r| r.psnr)
+        .find(|p| !p.is_nan())
+        .unwrap_or(f64::NAN);
     let mut last_frame: Option<crate::dataset::Frame> = None;
 
     let handle = |mapper: &mut Mapper<'_, B>,
@@ -806,11 +884,14 @@ where
         Ok(())
     };
 
-    let mut outside_box = 0usize;
     // Poses of the frames pushed so far (the mesh level is measured over them after mapping).
     let mut poses: Vec<Pose> = Vec::with_capacity(n);
+    for i in 0..start {
+        poses.push(ds.frame(i)?.pose);
+    }
+    pb.set_position(start as u64);
     let pushed = opts.stop_after.map_or(n, |s| s.min(n));
-    for i in 0..pushed {
+    for i in start..pushed {
         let frame = ds.frame(i)?;
         poses.push(frame.pose);
         let o = frame.pose.origin();
@@ -879,6 +960,13 @@ where
         }
         pb.inc(1);
         last_frame = Some(frame);
+        if opts.checkpoint_every > 0 && (i + 1).is_multiple_of(opts.checkpoint_every) {
+            let id = DatasetId::new(&opts.dataset, n, k.width, k.height, &poses);
+            let lrs = Group::ALL.map(|g| mapper.backend().adam_lr(g));
+            let run = RunState::new(cfg, id, &mapper.state(), lrs, &rows, outside_box, mapping_s);
+            let data = mapper.backend_mut().export()?;
+            checkpoint::save(&opts.out, cfg, &data, &run)?;
+        }
     }
     if let Some(frame) = last_frame.filter(|_| pushed == n) {
         let t0 = Instant::now();

@@ -107,6 +107,9 @@ pub trait MapBackend: Backend {
     fn query_color(&mut self, points: &[[f32; 3]], out: &mut [[f32; 3]]) -> anyhow::Result<()>;
     /// The trained map (parameters, Adam moments and step) as host data.
     fn export(&mut self) -> anyhow::Result<ModelData>;
+    /// Replaces the map (parameters, Adam moments and step) by `data` of the same layout
+    /// (a resumed run).
+    fn import(&mut self, data: &ModelData) -> anyhow::Result<()>;
     /// CPU worker threads (0 for a GPU backend).
     fn threads(&self) -> usize;
 }
@@ -124,6 +127,15 @@ impl MapBackend for ParallelCpuBackend {
 
     fn export(&mut self) -> anyhow::Result<ModelData> {
         Ok(self.data().clone())
+    }
+
+    fn import(&mut self, data: &ModelData) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            data.layout == *self.layout(),
+            "the saved map's model differs from this configuration's"
+        );
+        *self.data_mut() = data.clone();
+        Ok(())
     }
 
     fn threads(&self) -> usize {
@@ -151,6 +163,20 @@ impl MapBackend for VulkanBackend {
         }
         data.t = self.steps();
         Ok(data)
+    }
+
+    fn import(&mut self, data: &ModelData) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            data.layout == *self.layout(),
+            "the saved map's model differs from this configuration's"
+        );
+        for g in Group::ALL {
+            let i = g as usize;
+            self.write_params(g, &data.params[i], false)?;
+            self.write_adam(g, &data.m[i], &data.v[i])?;
+        }
+        self.set_steps(data.t);
+        Ok(())
     }
 
     fn threads(&self) -> usize {

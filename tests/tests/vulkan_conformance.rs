@@ -395,6 +395,41 @@ fn nonfinite_steps_are_rejected_like_the_cpu() {
     }
 }
 
+/// A resumed run on the GPU (`MapBackend::import`: parameters, Adam moments, step count)
+/// continues as the CPU does from the same state.
+#[test]
+fn imported_state_continues_like_the_cpu() {
+    use himap::select::MapBackend;
+    let (data, rays) = setup(RenderMode::SdfDensity, 3, 120);
+    let adam = test_adam();
+    let Some(mut gpu) = vulkan_or_skip(&data, adam) else {
+        return;
+    };
+    let loss = loss_config(7, rays.len());
+    let mut res = vec![RayResult::default(); rays.len()];
+    // a state with non-zero moments and step count, from the CPU
+    let mut cpu = ParallelCpuBackend::new(data.clone(), adam, 2).unwrap();
+    for _ in 0..3 {
+        cpu.train_step(&rays, &loss, &mut res).unwrap();
+    }
+    let saved = cpu.export().unwrap();
+    assert_eq!(saved.t, 3);
+    gpu.import(&saved).unwrap();
+    assert_eq!(gpu.export().unwrap().params, saved.params);
+    let mut rg = vec![RayResult::default(); rays.len()];
+    let sc = cpu.train_step(&rays, &loss, &mut res).unwrap();
+    let sg = gpu.train_step(&rays, &loss, &mut rg).unwrap();
+    assert_eq!((sc.t, sg.t), (4, 4));
+    assert_same_f32("results", &result_floats(&res), &result_floats(&rg));
+    let (a, b) = (cpu.export().unwrap(), gpu.export().unwrap());
+    for g in Group::ALL {
+        let i = g as usize;
+        assert_same_f32(&format!("{} params", g.name()), &a.params[i], &b.params[i]);
+        assert_same_f32(&format!("{} adam m", g.name()), &a.m[i], &b.m[i]);
+        assert_same_f32(&format!("{} adam v", g.name()), &a.v[i], &b.v[i]);
+    }
+}
+
 /// 50 full training steps (new rays every step, the detached-colour switch, an Adam learning
 /// rate change) end on the same parameters. Before the per-sample passes this diverged at
 /// step 17: llvmpipe cuts every loop short once an invocation has run 65535 loop iterations.

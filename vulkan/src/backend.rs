@@ -502,6 +502,34 @@ impl VulkanBackend {
         Ok(())
     }
 
+    /// Overwrites a group's Adam moments (a resumed run).
+    pub fn write_adam(&mut self, group: Group, m: &[f32], v: &[f32]) -> Result<(), VulkanError> {
+        let g = &mut self.groups[group as usize];
+        check_len(group.name(), m.len(), g.len)?;
+        check_len(group.name(), v.len(), g.len)?;
+        for p in g.parts.iter_mut() {
+            let r = p.start..p.start + p.len;
+            upload(
+                &mut self.gpu,
+                &mut self.staging,
+                &mut p.m,
+                &f32_bytes(&m[r.clone()]),
+            )?;
+            upload(
+                &mut self.gpu,
+                &mut self.staging,
+                &mut p.v,
+                &f32_bytes(&v[r]),
+            )?;
+        }
+        Ok(())
+    }
+
+    /// Sets the count of Adam steps taken (a resumed run).
+    pub fn set_steps(&mut self, t: u32) {
+        self.t = t;
+    }
+
     /// Signed distances at world points (`sdf_at`, as the CPU backends' `sdf`).
     pub fn sdf(&mut self, points: &[[f32; 3]], out: &mut [f32]) -> Result<(), VulkanError> {
         check_len("sdf output", out.len(), points.len())?;

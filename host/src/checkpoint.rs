@@ -1,0 +1,284 @@
+//! Checkpoints of a mapping run (`himap map --checkpoint-every N`, `--resume DIR`): one
+//! `checkpoint.safetensors` in the output folder, written atomically (temporary file, then
+//! rename) after every N-th pushed frame. It holds the map (parameters, Adam moments and step
+//! count, as `map.safetensors`) and, in its metadata, the mapper's state between frames
+//! ([`himap_core::mapper::MapperState`]: local frames, keyframe cache, free image slots, frame
+//! and iteration counters, the sampling generator), the learning rates (the non-finite policy
+//! may have lowered them), the metrics rows so far, the configuration and the dataset's
+//! identity. A resumed run re-uploads the images of the frames the mapper holds from the
+//! dataset and continues bit for bit as the uninterrupted run would have.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use himap_core::camera::Pose;
+use himap_core::mapper::{HeldFrame, MapperState, MAX_KEYFRAMES, MAX_LOCAL, MAX_SLOTS};
+use himap_core::model::NUM_GROUPS;
+use serde::{Deserialize, Serialize};
+
+use crate::backend::ModelData;
+use crate::config::Config;
+use crate::mapper_cli::UpdateMetrics;
+
+/// File name of the checkpoint in the output folder.
+pub const FILE: &str = "checkpoint.safetensors";
+/// Metadata key of the [`RunState`] JSON.
+const META: &str = "himap_checkpoint";
+
+/// What identifies the dataset a run maps: its folder, frame count, image size and a hash
+/// of the poses of the frames pushed so far (never of frames not pushed yet).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DatasetId {
+    pub path: String,
+    pub frames: usize,
+    pub width: u32,
+    pub height: u32,
+    pub poses_hash: String,
+}
+
+impl DatasetId {
+    /// The identity of `dataset` (folder) with `frames` frames of `width x height`, from the
+    /// poses pushed so far.
+    pub fn new(dataset: &Path, frames: usize, width: u32, height: u32, poses: &[Pose]) -> Self {
+        // FNV-1a over the poses' bits
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        for p in poses {
+            for x in p.m.iter().flatten() {
+                for b in x.to_bits().to_le_bytes() {
+                    h = (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
+                }
+            }
+        }
+        Self {
+            path: std::fs::canonicalize(dataset)
+                .unwrap_or_else(|_| dataset.to_path_buf())
+                .display()
+                .to_string(),
+            frames,
+            width,
+            height,
+            poses_hash: format!("{h:016x}"),
+        }
+    }
+}
+
+/// A held frame as bits (exact through JSON).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct FrameBits {
+    id: u32,
+    slot: u32,
+    pose: Vec<u32>,
+}
+
+impl FrameBits {
+    fn from_core(e: &HeldFrame) -> Self {
+        Self {
+            id: e.id,
+            slot: e.slot,
+            pose: e.pose.m.iter().flatten().map(|x| x.to_bits()).collect(),
+        }
+    }
+
+    fn to_core(&self) -> anyhow::Result<HeldFrame> {
+        if self.pose.len() != 12 {
+            bail!("a held frame's pose has {} values, not 12", self.pose.len());
+        }
+        let mut m = [[0.0f32; 4]; 3];
+        for (k, b) in self.pose.iter().enumerate() {
+            m[k / 4][k % 4] = f32::from_bits(*b);
+        }
+        Ok(HeldFrame {
+            id: self.id,
+            slot: self.slot,
+            pose: Pose { m },
+        })
+    }
+}
+
+/// Everything of a run besides the map, as stored in the checkpoint's metadata.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RunState {
+    /// The effective configuration (TOML) and the dataset's identity at the checkpoint.
+    pub config: String,
+    pub dataset: DatasetId,
+    local: Vec<FrameBits>,
+    keyframes: Vec<FrameBits>,
+    pending: usize,
+    free: Vec<u32>,
+    initialized: bool,
+    /// Frames pushed (the next frame to push is this index of the selection).
+    pub pushed: u32,
+    total_iters: u32,
+    rejected_steps: u32,
+    rejected_run: u32,
+    lr_reductions: u32,
+    rng: u64,
+    /// Each group's Adam learning rate (bits).
+    lr_bits: Vec<u32>,
+    /// The metrics rows so far and the loop's counters.
+    pub rows: Vec<UpdateMetrics>,
+    pub outside_box: usize,
+    pub mapping_s: f64,
+}
+
+impl RunState {
+    /// The run's state from the mapper's, the learning rates and the loop's.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        config: &Config,
+        dataset: DatasetId,
+        m: &MapperState,
+        lrs: [f32; NUM_GROUPS],
+        rows: &[UpdateMetrics],
+        outside_box: usize,
+        mapping_s: f64,
+    ) -> Self {
+        Self {
+            config: config.to_toml(),
+            dataset,
+            local: m.local[..m.local_len]
+                .iter()
+                .map(FrameBits::from_core)
+                .collect(),
+            keyframes: m.keyframes[..m.kf_len]
+                .iter()
+                .map(FrameBits::from_core)
+                .collect(),
+            pending: m.pending,
+            free: m.free[..m.free_len].to_vec(),
+            initialized: m.initialized,
+            pushed: m.pushed,
+            total_iters: m.total_iters,
+            rejected_steps: m.rejected_steps,
+            rejected_run: m.rejected_run,
+            lr_reductions: m.lr_reductions,
+            rng: m.rng,
+            lr_bits: lrs.iter().map(|x| x.to_bits()).collect(),
+            rows: rows.to_vec(),
+            outside_box,
+            mapping_s,
+        }
+    }
+
+    /// The mapper's state (lengths checked against the module's capacities).
+    pub fn mapper_state(&self) -> anyhow::Result<MapperState> {
+        if self.local.len() > MAX_LOCAL
+            || self.keyframes.len() > MAX_KEYFRAMES
+            || self.free.len() > MAX_SLOTS
+        {
+            bail!("the checkpoint's frame lists exceed the mapper's capacities");
+        }
+        let empty = HeldFrame {
+            id: 0,
+            slot: 0,
+            pose: Pose::IDENTITY,
+        };
+        let mut s = MapperState {
+            local: [empty; MAX_LOCAL],
+            local_len: self.local.len(),
+            keyframes: [empty; MAX_KEYFRAMES],
+            kf_len: self.keyframes.len(),
+            pending: self.pending,
+            free: [0; MAX_SLOTS],
+            free_len: self.free.len(),
+            initialized: self.initialized,
+            pushed: self.pushed,
+            total_iters: self.total_iters,
+            rejected_steps: self.rejected_steps,
+            rejected_run: self.rejected_run,
+            lr_reductions: self.lr_reductions,
+            rng: self.rng,
+        };
+        for (d, f) in s.local.iter_mut().zip(&self.local) {
+            *d = f.to_core()?;
+        }
+        for (d, f) in s.keyframes.iter_mut().zip(&self.keyframes) {
+            *d = f.to_core()?;
+        }
+        s.free[..self.free.len()].copy_from_slice(&self.free);
+        Ok(s)
+    }
+
+    /// The learning rates per group.
+    pub fn lrs(&self) -> anyhow::Result<[f32; NUM_GROUPS]> {
+        if self.lr_bits.len() != NUM_GROUPS {
+            bail!(
+                "the checkpoint holds {} learning rates, not {NUM_GROUPS}",
+                self.lr_bits.len()
+            );
+        }
+        Ok(std::array::from_fn(|g| f32::from_bits(self.lr_bits[g])))
+    }
+}
+
+/// Writes `dir/checkpoint.safetensors` atomically.
+pub fn save(dir: &Path, config: &Config, data: &ModelData, run: &RunState) -> anyhow::Result<()> {
+    let json = serde_json::to_string(run)?;
+    crate::mapper_cli::save_map_with(&dir.join(FILE), config, data, &[(META, json)])
+}
+
+/// The checkpoint file of `path` (a file, or a folder holding [`FILE`]).
+pub fn path_of(path: &Path) -> PathBuf {
+    if path.is_dir() {
+        path.join(FILE)
+    } else {
+        path.to_path_buf()
+    }
+}
+
+/// Reads a checkpoint and checks it against the run that resumes it: the same effective
+/// configuration and the same dataset (folder, frame count, image size, and the poses of
+/// the frames it had pushed, from `poses_of(n)`).
+pub fn load(
+    path: &Path,
+    config: &Config,
+    dataset: &Path,
+    frames: usize,
+    size: (u32, u32),
+    poses_of: impl FnOnce(usize) -> anyhow::Result<Vec<Pose>>,
+) -> anyhow::Result<(RunState, ModelData)> {
+    let file = path_of(path);
+    let (_, data, meta) = crate::mapper_cli::load_map_with_meta(&file)
+        .with_context(|| format!("reading the checkpoint {}", file.display()))?;
+    let json = meta
+        .get(META)
+        .with_context(|| format!("{}: a map, not a checkpoint (no {META})", file.display()))?;
+    let run: RunState = serde_json::from_str(json)
+        .with_context(|| format!("{}: unreadable checkpoint state", file.display()))?;
+    if run.config != config.to_toml() {
+        bail!(
+            "{} was written with another configuration; resume with the same preset and \
+             --config as the interrupted run (`himap map --print-config` shows the effective one)",
+            file.display()
+        );
+    }
+    let pushed = run.pushed as usize;
+    if pushed > frames {
+        bail!(
+            "{} has {pushed} frames pushed but the dataset has {frames}",
+            file.display()
+        );
+    }
+    let id = DatasetId::new(dataset, frames, size.0, size.1, &poses_of(pushed)?);
+    if run.dataset != id {
+        bail!(
+            "{} was written for another dataset ({}, {} frames of {}x{}); this one is {} ({} \
+             frames of {}x{}){}",
+            file.display(),
+            run.dataset.path,
+            run.dataset.frames,
+            run.dataset.width,
+            run.dataset.height,
+            id.path,
+            id.frames,
+            id.width,
+            id.height,
+            if run.dataset.poses_hash != id.poses_hash {
+                ", and the poses differ"
+            } else {
+                ""
+            }
+        );
+    }
+    Ok((run, data))
+}
