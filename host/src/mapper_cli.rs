@@ -18,7 +18,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use himap_core::camera::{Intrinsics, Pose};
-use himap_core::mapper::{view_rays, IterInfo, Mapper, UpdateKind, UpdateReport};
+use himap_core::mapper::{view_rays, IterInfo, Mapper, MapperError, UpdateKind, UpdateReport};
 use himap_core::mapping::{pack_rgba8, PixelResult, PixelSample};
 use himap_core::model::{Group, ModelLayout, Ray, RayResult};
 use himap_core::step::{Backend, ImageStore};
@@ -890,6 +890,8 @@ where
         poses.push(ds.frame(i)?.pose);
     }
     pb.set_position(start as u64);
+    // Frames pushed at the last checkpoint this run wrote (named when the backend fails).
+    let mut last_checkpoint: Option<usize> = None;
     let pushed = opts.stop_after.map_or(n, |s| s.min(n));
     for i in start..pushed {
         let frame = ds.frame(i)?;
@@ -952,7 +954,10 @@ where
         };
         let rep = mapper
             .push_frame_observed(&rgba, frame.pose, &mut observe)
-            .map_err(|e| anyhow::anyhow!("frame {}: {e}", frame.index))?;
+            .map_err(|e| {
+                let at = format!("frame {}", frame.index);
+                mid_run_error(e, &at, &backend_name, last_checkpoint, opts)
+            })?;
         let dt = t0.elapsed().as_secs_f64();
         if let Some(r) = rep {
             mapping_s += dt;
@@ -966,14 +971,14 @@ where
             let run = RunState::new(cfg, id, &mapper.state(), lrs, &rows, outside_box, mapping_s);
             let data = mapper.backend_mut().export()?;
             checkpoint::save(&opts.out, cfg, &data, &run)?;
+            last_checkpoint = Some(i + 1);
         }
     }
     if let Some(frame) = last_frame.filter(|_| pushed == n) {
         let t0 = Instant::now();
-        if let Some(r) = mapper
-            .flush(&mut |_: &IterInfo| {})
-            .map_err(|e| anyhow::anyhow!("final update: {e}"))?
-        {
+        if let Some(r) = mapper.flush(&mut |_: &IterInfo| {}).map_err(|e| {
+            mid_run_error(e, "the final update", &backend_name, last_checkpoint, opts)
+        })? {
             let dt = t0.elapsed().as_secs_f64();
             mapping_s += dt;
             handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
@@ -1153,6 +1158,37 @@ where
         ssim,
         depth_l1_cm,
     })
+}
+
+/// A mapping failure mid-run (`at`: the frame or the final update): the backend's own error
+/// stays in the chain (a GPU failure exits with code 3), with the backend named and the way
+/// to go on. The mapper's state inside a failed update is partial, so no checkpoint is
+/// written then: the last periodic one (`--checkpoint-every`) is what a run resumes from.
+fn mid_run_error<E: std::error::Error + Send + Sync + 'static>(
+    e: MapperError<E>,
+    at: &str,
+    backend: &str,
+    last_checkpoint: Option<usize>,
+    opts: &MapOptions,
+) -> anyhow::Error {
+    let hint = match last_checkpoint {
+        Some(f) => format!(
+            "the last checkpoint (after {f} frames) is {}: continue with `--resume {}` (also \
+             on another backend, e.g. `--backend cpu`: the same bits)",
+            opts.out.join(checkpoint::FILE).display(),
+            opts.out.display()
+        ),
+        None if opts.checkpoint_every == 0 => {
+            "no checkpoint was kept: `--checkpoint-every N` keeps one to resume from".into()
+        }
+        None => "no checkpoint was written yet".into(),
+    };
+    match e {
+        MapperError::Backend(e) => {
+            anyhow::Error::new(e).context(format!("{at}: the {backend} backend failed; {hint}"))
+        }
+        MapperError::Core(e) => anyhow::anyhow!("{at}: mapper: {e}"),
+    }
 }
 
 /// Averages of the final map re-rendered over the sequence.

@@ -1106,6 +1106,8 @@ impl Backend for VulkanBackend {
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
     ) -> Result<StepStats, VulkanError> {
+        #[cfg(feature = "fault-injection")]
+        crate::fault::map_step()?;
         check_len("results", results.len(), batch.pixels.len())?;
         let slots = window_slots(batch, &self.store)?;
         let n = batch.pixels.len();

@@ -54,6 +54,50 @@ pub mod entry {
 /// Workgroup size (x) of every entry point.
 pub const WORKGROUP_SIZE: u32 = 64;
 
+/// Fault injection for the GPU-failure tests (cargo feature `fault-injection`, test builds
+/// only): after a given number of further mapping steps, every submission fails as on a lost
+/// device. Process-wide, so a test that arms it runs in a test binary of its own.
+#[cfg(feature = "fault-injection")]
+pub mod fault {
+    use std::sync::atomic::{AtomicBool, AtomicI64, Ordering};
+
+    /// Mapping steps left before the device is "lost" (< 0: disarmed), and whether it is.
+    static LEFT: AtomicI64 = AtomicI64::new(-1);
+    static LOST: AtomicBool = AtomicBool::new(false);
+
+    /// Lets `n` more mapping steps (`map_step`) succeed; the next one and every submission
+    /// after it fail with `VulkanError::DeviceLost`, as on a GPU reset.
+    pub fn lose_device_after_map_steps(n: u32) {
+        LOST.store(false, Ordering::SeqCst);
+        LEFT.store(n as i64, Ordering::SeqCst);
+    }
+
+    /// Back to normal operation.
+    pub fn disarm() {
+        LEFT.store(-1, Ordering::SeqCst);
+        LOST.store(false, Ordering::SeqCst);
+    }
+
+    /// At every mapping step.
+    pub(crate) fn map_step() -> Result<(), crate::VulkanError> {
+        let left = LEFT.load(Ordering::SeqCst);
+        if left == 0 {
+            LOST.store(true, Ordering::SeqCst);
+        } else if left > 0 {
+            LEFT.store(left - 1, Ordering::SeqCst);
+        }
+        submit()
+    }
+
+    /// At every submission.
+    pub(crate) fn submit() -> Result<(), crate::VulkanError> {
+        if LOST.load(Ordering::SeqCst) {
+            return Err(crate::VulkanError::DeviceLost);
+        }
+        Ok(())
+    }
+}
+
 /// Layouts and scene constants as `u32` words, the exact encoding the shaders decode (one
 /// source file shared with `himap-shaders`).
 #[path = "../../shaders/src/words.rs"]

@@ -668,6 +668,8 @@ impl Gpu {
     where
         F: FnOnce(&mut Recorder<'a>) -> Result<(), VulkanError>,
     {
+        #[cfg(feature = "fault-injection")]
+        crate::fault::submit()?;
         let d = &self.device.device;
         // SAFETY: the previous submission was waited for, so neither the command buffer nor
         // any descriptor set of the pool is in use.
