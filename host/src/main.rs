@@ -29,7 +29,7 @@ enum Command {
         /// Configuration file (TOML; missing fields take the preset's values).
         #[arg(long, conflicts_with = "preset")]
         config: Option<PathBuf>,
-        /// Preset: small (2-core CPU) or paper.
+        /// Preset: small (2-core CPU), paper, or demo (`himap demo`'s: small with the 20-iteration schedule without early termination).
         #[arg(long, default_value = "small")]
         preset: String,
         /// Backend: cpu (multi-threaded), vulkan, or auto (a Vulkan GPU when one is usable,
@@ -62,7 +62,7 @@ enum Command {
         #[arg(long)]
         print_config: bool,
     },
-    /// Synthesise a small room, map it with the small preset, evaluate and print a table.
+    /// Synthesise a small room, map it with the demo preset (`small` with 20 online iterations and no early termination), evaluate and print a table.
     Demo {
         /// Keep the room and the outputs here (default: a temporary directory).
         #[arg(long)]
@@ -73,7 +73,7 @@ enum Command {
         /// Image size WxH.
         #[arg(long, default_value = "128x96")]
         size: String,
-        /// Configuration file (default: the small preset).
+        /// Configuration file laid over the demo preset (default: the demo preset).
         #[arg(long)]
         config: Option<PathBuf>,
         /// Worker threads (0 = all cores).
@@ -400,12 +400,15 @@ fn run() -> anyhow::Result<()> {
         } => {
             backend.parse::<himap::select::BackendChoice>()?;
             let cfg = match &config {
-                Some(p) => himap::config::Config::from_file(p)?,
-                None => himap::config::Config::small(),
+                Some(p) => {
+                    himap::config::Config::from_file_over(p, &himap::config::Config::demo())?
+                }
+                None => himap::config::Config::demo(),
             };
             let size = parse_size(&size)?;
             println!(
-                "synthesising a {frames}-frame {}x{} room and mapping it with the small preset",
+                "synthesising a {frames}-frame {}x{} room and mapping it with the demo preset \
+                 (small with 20 online iterations and no early termination)",
                 size.0, size.1
             );
             let (s, dir) = himap::mapper_cli::run_demo(
