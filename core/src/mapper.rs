@@ -424,23 +424,9 @@ pub struct Mapper<'a, B: Backend> {
     cfg: MapperConfig,
     k: Intrinsics,
     store: ImageStore,
-    /// Local frames, oldest first.
-    local: [HeldFrame; MAX_LOCAL],
-    local_len: usize,
-    /// Frames pushed since the last update.
-    pending: usize,
-    keyframes: [HeldFrame; MAX_KEYFRAMES],
-    kf_len: usize,
-    free: [u32; MAX_SLOTS],
-    free_len: usize,
-    initialized: bool,
-    pushed: u32,
-    /// Iterations run so far (seeds the stratified jitter).
-    total_iters: u32,
-    /// Rejected (non-finite) steps in all, in a row now, and learning-rate reductions.
-    rejected_steps: u32,
-    rejected_run: u32,
-    lr_reductions: u32,
+    /// What lasts between pushed frames; its `rng` is not kept current (the live generator
+    /// is `rng`, [`Self::state`] reads it).
+    st: MapperState,
     rng: SplitMix,
     pixels: &'a mut [PixelSample],
     results: &'a mut [PixelResult],
@@ -487,19 +473,22 @@ impl<'a, B: Backend> Mapper<'a, B> {
             cfg,
             k,
             store,
-            local: [EMPTY; MAX_LOCAL],
-            local_len: 0,
-            pending: 0,
-            keyframes: [EMPTY; MAX_KEYFRAMES],
-            kf_len: 0,
-            free,
-            free_len: n_slots,
-            initialized: false,
-            pushed: 0,
-            total_iters: 0,
-            rejected_steps: 0,
-            rejected_run: 0,
-            lr_reductions: 0,
+            st: MapperState {
+                local: [EMPTY; MAX_LOCAL],
+                local_len: 0,
+                keyframes: [EMPTY; MAX_KEYFRAMES],
+                kf_len: 0,
+                pending: 0,
+                free,
+                free_len: n_slots,
+                initialized: false,
+                pushed: 0,
+                total_iters: 0,
+                rejected_steps: 0,
+                rejected_run: 0,
+                lr_reductions: 0,
+                rng: cfg.seed,
+            },
             rng: SplitMix::new(cfg.seed),
             pixels,
             results,
@@ -522,20 +511,8 @@ impl<'a, B: Backend> Mapper<'a, B> {
     /// What the mapper holds between pushed frames (see [`MapperState`]).
     pub fn state(&self) -> MapperState {
         MapperState {
-            local: self.local,
-            local_len: self.local_len,
-            keyframes: self.keyframes,
-            kf_len: self.kf_len,
-            pending: self.pending,
-            free: self.free,
-            free_len: self.free_len,
-            initialized: self.initialized,
-            pushed: self.pushed,
-            total_iters: self.total_iters,
-            rejected_steps: self.rejected_steps,
-            rejected_run: self.rejected_run,
-            lr_reductions: self.lr_reductions,
             rng: self.rng.state(),
+            ..self.st.clone()
         }
     }
 
@@ -564,19 +541,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 "mapper: the saved state does not fit this configuration",
             ));
         }
-        m.local = state.local;
-        m.local_len = state.local_len;
-        m.keyframes = state.keyframes;
-        m.kf_len = state.kf_len;
-        m.pending = state.pending;
-        m.free = state.free;
-        m.free_len = state.free_len;
-        m.initialized = state.initialized;
-        m.pushed = state.pushed;
-        m.total_iters = state.total_iters;
-        m.rejected_steps = state.rejected_steps;
-        m.rejected_run = state.rejected_run;
-        m.lr_reductions = state.lr_reductions;
+        m.st = state.clone();
         m.rng = SplitMix::new(state.rng);
         Ok(m)
     }
@@ -603,37 +568,37 @@ impl<'a, B: Backend> Mapper<'a, B> {
 
     /// Whether the initialisation has run.
     pub fn is_initialized(&self) -> bool {
-        self.initialized
+        self.st.initialized
     }
 
     /// Frames pushed so far.
     pub fn frames_pushed(&self) -> u32 {
-        self.pushed
+        self.st.pushed
     }
 
     /// Steps rejected as non-finite so far (skipped; see [`MapperConfig::rejected_lr_after`]).
     pub fn rejected_steps(&self) -> u32 {
-        self.rejected_steps
+        self.st.rejected_steps
     }
 
     /// Times the learning rates were lowered after rejected steps.
     pub fn lr_reductions(&self) -> u32 {
-        self.lr_reductions
+        self.st.lr_reductions
     }
 
     /// Mapping iterations run so far.
     pub fn iterations(&self) -> u32 {
-        self.total_iters
+        self.st.total_iters
     }
 
     /// Ids of the local frames, oldest first (including frames pending for the next update).
     pub fn local_ids(&self) -> impl Iterator<Item = u32> + '_ {
-        self.local[..self.local_len].iter().map(|e| e.id)
+        self.st.local[..self.st.local_len].iter().map(|e| e.id)
     }
 
     /// Ids of the keyframe cache, oldest first.
     pub fn keyframe_ids(&self) -> impl Iterator<Item = u32> + '_ {
-        self.keyframes[..self.kf_len].iter().map(|e| e.id)
+        self.st.keyframes[..self.st.kf_len].iter().map(|e| e.id)
     }
 
     /// Ids of the frames of the last update's window (keyframes first).
@@ -664,35 +629,35 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 Error::InvalidConfig("mapper: pose is not a finite rigid transform").into(),
             );
         }
-        if self.local_len >= MAX_LOCAL || self.free_len == 0 {
+        if self.st.local_len >= MAX_LOCAL || self.st.free_len == 0 {
             return Err(Error::Capacity {
                 what: "mapper frame slots",
-                needed: self.local_len as u64 + 1,
+                needed: self.st.local_len as u64 + 1,
                 capacity: MAX_LOCAL as u64,
             }
             .into());
         }
-        self.free_len -= 1;
-        let slot = self.free[self.free_len];
+        self.st.free_len -= 1;
+        let slot = self.st.free[self.st.free_len];
         if let Err(e) = self.backend.upload_frame(slot, rgba) {
-            self.free_len += 1;
+            self.st.free_len += 1;
             return Err(MapperError::Backend(e));
         }
-        self.local[self.local_len] = HeldFrame {
-            id: self.pushed,
+        self.st.local[self.st.local_len] = HeldFrame {
+            id: self.st.pushed,
             slot,
             pose,
         };
-        self.local_len += 1;
-        self.pushed += 1;
-        self.pending += 1;
-        if !self.initialized {
-            if self.local_len >= self.cfg.init_frames as usize {
+        self.st.local_len += 1;
+        self.st.pushed += 1;
+        self.st.pending += 1;
+        if !self.st.initialized {
+            if self.st.local_len >= self.cfg.init_frames as usize {
                 return self.initialise(observe).map(Some);
             }
             return Ok(None);
         }
-        if self.pending >= self.cfg.update_every as usize {
+        if self.st.pending >= self.cfg.update_every as usize {
             return self.online_update(observe).map(Some);
         }
         Ok(None)
@@ -704,13 +669,13 @@ impl<'a, B: Backend> Mapper<'a, B> {
         &mut self,
         observe: &mut F,
     ) -> Result<Option<UpdateReport>, MapperError<B::Error>> {
-        if self.local_len == 0 {
+        if self.st.local_len == 0 {
             return Ok(None);
         }
-        if !self.initialized {
+        if !self.st.initialized {
             return self.initialise(observe).map(Some);
         }
-        if self.pending > 0 {
+        if self.st.pending > 0 {
             return self.online_update(observe).map(Some);
         }
         Ok(None)
@@ -723,8 +688,8 @@ impl<'a, B: Backend> Mapper<'a, B> {
         self.win_len = 0;
         self.win_kf = 0;
         let mut i = 0;
-        while i < self.local_len {
-            self.add_to_window(self.local[i]);
+        while i < self.st.local_len {
+            self.add_to_window(self.st.local[i]);
             i += 1;
         }
         let online_t = self.backend.layout().config.min_transmittance;
@@ -741,8 +706,8 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 .map_err(MapperError::Backend)?;
         }
         let (first, last) = iters?;
-        self.initialized = true;
-        self.pending = 0;
+        self.st.initialized = true;
+        self.st.pending = 0;
         // A longer initialisation window than the local set: trim it now.
         self.evict_to(self.cfg.local_frames as usize)?;
         Ok(self.report(UpdateKind::Init, self.cfg.init_iters, first, last, 0))
@@ -756,12 +721,12 @@ impl<'a, B: Backend> Mapper<'a, B> {
         let candidates = self.select_keyframes()?;
         // window: the chosen keyframes (already in win_*), then the local frames
         let mut i = 0;
-        while i < self.local_len {
-            self.add_to_window(self.local[i]);
+        while i < self.st.local_len {
+            self.add_to_window(self.st.local[i]);
             i += 1;
         }
         let (first, last) = self.run_iters(UpdateKind::Online, self.cfg.iters, observe)?;
-        self.pending = 0;
+        self.st.pending = 0;
         Ok(self.report(UpdateKind::Online, self.cfg.iters, first, last, candidates))
     }
 
@@ -775,14 +740,14 @@ impl<'a, B: Backend> Mapper<'a, B> {
     ) -> UpdateReport {
         UpdateReport {
             kind,
-            frame: self.pushed.saturating_sub(1),
+            frame: self.st.pushed.saturating_sub(1),
             iters,
             first,
             last,
             window_frames: self.win_len as u32,
             window_keyframes: self.win_kf as u32,
             candidates,
-            keyframes: self.kf_len as u32,
+            keyframes: self.st.kf_len as u32,
         }
     }
 
@@ -796,32 +761,32 @@ impl<'a, B: Backend> Mapper<'a, B> {
     }
 
     fn free_slot(&mut self, slot: u32) {
-        if self.free_len < MAX_SLOTS {
-            self.free[self.free_len] = slot;
-            self.free_len += 1;
+        if self.st.free_len < MAX_SLOTS {
+            self.st.free[self.st.free_len] = slot;
+            self.st.free_len += 1;
         }
     }
 
     /// Cuts the local set to its `keep` most recent frames: the oldest leaving frame joins the
     /// keyframe cache, the other leaving frames are dropped.
     fn evict_to(&mut self, keep: usize) -> Result<(), Error> {
-        if self.local_len <= keep {
+        if self.st.local_len <= keep {
             return Ok(());
         }
-        let leave = self.local_len - keep;
-        let oldest = self.local[0];
+        let leave = self.st.local_len - keep;
+        let oldest = self.st.local[0];
         let mut i = 1;
         while i < leave {
-            let slot = self.local[i].slot;
+            let slot = self.st.local[i].slot;
             self.free_slot(slot);
             i += 1;
         }
         let mut j = 0;
         while j < keep {
-            self.local[j] = self.local[j + leave];
+            self.st.local[j] = self.st.local[j + leave];
             j += 1;
         }
-        self.local_len = keep;
+        self.st.local_len = keep;
         self.add_keyframe(oldest);
         Ok(())
     }
@@ -832,37 +797,37 @@ impl<'a, B: Backend> Mapper<'a, B> {
             self.free_slot(e.slot);
             return;
         }
-        if self.kf_len >= cap {
+        if self.st.kf_len >= cap {
             match self.cfg.keyframe_overflow {
                 KeyframeOverflow::Thin => {
                     let mut w = 0;
                     let mut r = 0;
-                    while r < self.kf_len {
+                    while r < self.st.kf_len {
                         if r % 2 == 0 {
-                            self.keyframes[w] = self.keyframes[r];
+                            self.st.keyframes[w] = self.st.keyframes[r];
                             w += 1;
                         } else {
-                            let slot = self.keyframes[r].slot;
+                            let slot = self.st.keyframes[r].slot;
                             self.free_slot(slot);
                         }
                         r += 1;
                     }
-                    self.kf_len = w;
+                    self.st.kf_len = w;
                 }
                 KeyframeOverflow::DropOldest => {
-                    let slot = self.keyframes[0].slot;
+                    let slot = self.st.keyframes[0].slot;
                     self.free_slot(slot);
                     let mut i = 1;
-                    while i < self.kf_len {
-                        self.keyframes[i - 1] = self.keyframes[i];
+                    while i < self.st.kf_len {
+                        self.st.keyframes[i - 1] = self.st.keyframes[i];
                         i += 1;
                     }
-                    self.kf_len -= 1;
+                    self.st.kf_len -= 1;
                 }
             }
         }
-        self.keyframes[self.kf_len] = e;
-        self.kf_len += 1;
+        self.st.keyframes[self.st.kf_len] = e;
+        self.st.kf_len += 1;
     }
 
     /// Chooses the window's keyframes (into `win_*`, resetting the window) and returns the
@@ -871,11 +836,13 @@ impl<'a, B: Backend> Mapper<'a, B> {
         self.win_len = 0;
         self.win_kf = 0;
         let want = self.cfg.window_keyframes as usize;
-        if want + self.cfg.global_keyframes as usize == 0 || self.kf_len == 0 || self.local_len == 0
+        if want + self.cfg.global_keyframes as usize == 0
+            || self.st.kf_len == 0
+            || self.st.local_len == 0
         {
             return Ok(0);
         }
-        let cur = self.local[self.local_len - 1].pose;
+        let cur = self.st.local[self.st.local_len - 1].pose;
         let k = self.k;
         let n = self.cfg.overlap_pixels as usize;
         let mut i = 0;
@@ -899,8 +866,8 @@ impl<'a, B: Backend> Mapper<'a, B> {
         let (w, h) = (k.width as f32, k.height as f32);
         let mut n_cand = 0usize;
         let mut f = 0;
-        while f < self.kf_len {
-            let kf = self.keyframes[f].pose;
+        while f < self.st.kf_len {
+            let kf = self.st.keyframes[f].pose;
             let mut inside = 0u32;
             let mut r = 0;
             while r < n {
@@ -948,11 +915,11 @@ impl<'a, B: Backend> Mapper<'a, B> {
         // Global keyframes: drawn uniformly from every other keyframe of the cache.
         let mut take = take;
         let global = self.cfg.global_keyframes as usize;
-        if global > 0 && take < self.kf_len {
+        if global > 0 && take < self.st.kf_len {
             // the cache indices not chosen yet, after the chosen ones
             let mut m = take;
             let mut f = 0;
-            while f < self.kf_len {
+            while f < self.st.kf_len {
                 if !self.candidates[..take].contains(&(f as u16)) {
                     self.candidates[m] = f as u16;
                     m += 1;
@@ -972,7 +939,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
         self.candidates[..take].sort_unstable();
         let mut i = 0;
         while i < take {
-            let e = self.keyframes[self.candidates[i] as usize];
+            let e = self.st.keyframes[self.candidates[i] as usize];
             self.add_to_window(e);
             i += 1;
         }
@@ -985,7 +952,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
         let total = self.cfg.pixels;
         // the frames new since the last update are the last `n_new` of the window
         let n_new = if kind == UpdateKind::Online && self.cfg.new_frame_share > 0.0 {
-            (self.pending as u32).min(n)
+            (self.st.pending as u32).min(n)
         } else {
             0
         };
@@ -1042,12 +1009,12 @@ impl<'a, B: Backend> Mapper<'a, B> {
     /// Counts a rejected step and, after `rejected_lr_after` in a row, lowers every group's
     /// learning rate by `rejected_lr_factor`.
     fn on_rejected_step(&mut self) -> Result<(), MapperError<B::Error>> {
-        self.rejected_steps += 1;
-        self.rejected_run += 1;
+        self.st.rejected_steps += 1;
+        self.st.rejected_run += 1;
         let after = self.cfg.rejected_lr_after;
-        if after > 0 && self.rejected_run >= after {
-            self.rejected_run = 0;
-            self.lr_reductions += 1;
+        if after > 0 && self.st.rejected_run >= after {
+            self.st.rejected_run = 0;
+            self.st.lr_reductions += 1;
             for g in Group::ALL {
                 let lr = self.backend.adam_lr(g) * self.cfg.rejected_lr_factor;
                 self.backend
@@ -1091,7 +1058,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 color_scale: inv,
                 warp_scale: inv,
                 color_to_geometry: init && it < self.cfg.init_color_iters,
-                seed: hash_u32(self.total_iters ^ (self.cfg.seed as u32)),
+                seed: hash_u32(self.st.total_iters ^ (self.cfg.seed as u32)),
                 warp: self.cfg.warp,
                 lambda_depth_prior: if init && it < self.cfg.depth_prior_iters {
                     self.cfg.lambda_depth_prior
@@ -1116,7 +1083,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 .backend
                 .map_step(&batch, self.results)
                 .map_err(MapperError::Backend)?;
-            self.total_iters = self.total_iters.wrapping_add(1);
+            self.st.total_iters = self.st.total_iters.wrapping_add(1);
             let mut c = 0.0f32;
             let mut wl = 0.0f32;
             let mut valid = 0u32;
@@ -1141,7 +1108,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
             if stats.rejected {
                 self.on_rejected_step()?;
             } else {
-                self.rejected_run = 0;
+                self.st.rejected_run = 0;
             }
             if it == 0 {
                 first = info;
@@ -1313,6 +1280,20 @@ mod tests {
         }
     }
 
+    /// Pixel and result buffers for `cfg()`'s 60 pixels.
+    fn buffers() -> (Vec<PixelSample>, Vec<PixelResult>) {
+        (
+            vec![PixelSample::default(); 60],
+            vec![PixelResult::default(); 60],
+        )
+    }
+
+    /// Whether `Mapper::new` refuses the configuration `c`.
+    fn refused(c: MapperConfig) -> bool {
+        let (mut px, mut res) = buffers();
+        Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).is_err()
+    }
+
     fn cfg() -> MapperConfig {
         let mut c = MapperConfig::paper(60);
         c.init_iters = 7;
@@ -1347,10 +1328,7 @@ mod tests {
     #[test]
     fn initialisation_triggers_on_the_15th_frame_with_the_colour_schedule() {
         let c = cfg();
-        let (mut px, mut res) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px, mut res) = buffers();
         let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
         assert!(push_n(&mut m, 14).is_empty());
         assert!(!m.is_initialized());
@@ -1387,10 +1365,7 @@ mod tests {
     #[test]
     fn online_windows_local_set_and_keyframe_cache_follow_the_schedule() {
         let c = cfg();
-        let (mut px, mut res) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px, mut res) = buffers();
         let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
         push_n(&mut m, 15);
         assert!(push_n(&mut m, 4).is_empty());
@@ -1452,10 +1427,7 @@ mod tests {
             let mut c = cfg();
             c.max_keyframes = 4;
             c.keyframe_overflow = policy;
-            let (mut px, mut res) = (
-                vec![PixelSample::default(); 60],
-                vec![PixelResult::default(); 60],
-            );
+            let (mut px, mut res) = buffers();
             let mut m =
                 Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
             // init + 5 updates: keyframes 0, 5, 10, 15, 20 offered to a cache of 4
@@ -1467,10 +1439,7 @@ mod tests {
     #[test]
     fn keyframes_outside_the_view_are_not_candidates() {
         let c = cfg();
-        let (mut px, mut res) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px, mut res) = buffers();
         let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
         let img = image();
         // frame 0 looks along -z (rotation by pi about y): the current view's points at
@@ -1493,10 +1462,7 @@ mod tests {
     #[test]
     fn pixels_are_spread_evenly_and_keep_the_border() {
         let c = cfg();
-        let (mut px, mut res) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px, mut res) = buffers();
         let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
         push_n(&mut m, 20);
         for call in &m.backend().calls {
@@ -1520,10 +1486,7 @@ mod tests {
     fn new_frames_get_their_share_of_pixels_online() {
         let mut c = cfg();
         c.new_frame_share = 0.5;
-        let (mut px, mut res) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px, mut res) = buffers();
         let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
         push_n(&mut m, 20);
         let calls = &m.backend().calls;
@@ -1557,14 +1520,7 @@ mod tests {
         }
         let mut bad = cfg();
         bad.new_frame_share = 1.5;
-        assert!(Mapper::new(
-            Mock::new(bad.slots_needed()),
-            bad,
-            intr(),
-            &mut px,
-            &mut res
-        )
-        .is_err());
+        assert!(refused(bad));
     }
 
     #[test]
@@ -1572,10 +1528,7 @@ mod tests {
         let mut c = cfg();
         c.rejected_lr_after = 3;
         c.rejected_lr_factor = 0.5;
-        let (mut px, mut res) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px, mut res) = buffers();
         let mut backend = Mock::new(c.slots_needed());
         backend.reject = true;
         let mut m = Mapper::new(backend, c, intr(), &mut px, &mut res).unwrap();
@@ -1592,14 +1545,7 @@ mod tests {
         assert_eq!(m.backend().lr, [0.0025; crate::model::NUM_GROUPS]);
         let mut bad = cfg();
         bad.rejected_lr_factor = 0.0;
-        assert!(Mapper::new(
-            Mock::new(bad.slots_needed()),
-            bad,
-            intr(),
-            &mut px,
-            &mut res
-        )
-        .is_err());
+        assert!(refused(bad));
     }
 
     #[test]
@@ -1607,10 +1553,7 @@ mod tests {
         for (init_t, want) in [(0.0, vec![]), (0.01, vec![0.01, 0.0])] {
             let mut c = cfg();
             c.init_min_transmittance = init_t;
-            let (mut px, mut res) = (
-                vec![PixelSample::default(); 60],
-                vec![PixelResult::default(); 60],
-            );
+            let (mut px, mut res) = buffers();
             let mut m =
                 Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
             push_n(&mut m, 20);
@@ -1625,10 +1568,7 @@ mod tests {
         let mut c = cfg();
         c.max_keyframes = 4; // the cache thins on the way
         let img = image();
-        let (mut px, mut res) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px, mut res) = buffers();
         let mut a = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
         push_n(&mut a, 47);
         let state = a.state();
@@ -1638,10 +1578,7 @@ mod tests {
         );
         let before = a.backend().calls.len();
         push_n(&mut a, 20);
-        let (mut px2, mut res2) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px2, mut res2) = buffers();
         let mut b = Mapper::restore(
             Mock::new(c.slots_needed()),
             c,
@@ -1682,10 +1619,7 @@ mod tests {
         let mut c = cfg();
         c.new_frame_share = 0.5;
         c.keyframe_share = 0.2;
-        let (mut px, mut res) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px, mut res) = buffers();
         let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
         push_n(&mut m, 20);
         let calls = &m.backend().calls;
@@ -1708,14 +1642,7 @@ mod tests {
         let mut bad = cfg();
         bad.new_frame_share = 0.75;
         bad.keyframe_share = 0.5;
-        assert!(Mapper::new(
-            Mock::new(bad.slots_needed()),
-            bad,
-            intr(),
-            &mut px,
-            &mut res
-        )
-        .is_err());
+        assert!(refused(bad));
     }
 
     #[test]
@@ -1724,10 +1651,7 @@ mod tests {
             let mut c = cfg();
             c.window_keyframes = 0;
             c.global_keyframes = global;
-            let (mut px, mut res) = (
-                vec![PixelSample::default(); 60],
-                vec![PixelResult::default(); 60],
-            );
+            let (mut px, mut res) = buffers();
             let mut m =
                 Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
             let reports = push_n(&mut m, 35);
@@ -1741,10 +1665,7 @@ mod tests {
     #[test]
     fn flush_initialises_short_sequences_and_runs_pending_updates() {
         let c = cfg();
-        let (mut px, mut res) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px, mut res) = buffers();
         let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
         assert!(m.flush(&mut |_| {}).unwrap().is_none());
         push_n(&mut m, 6);
@@ -1759,10 +1680,7 @@ mod tests {
     #[test]
     fn bad_configurations_and_inputs_are_errors() {
         let c = cfg();
-        let (mut px, mut res) = (
-            vec![PixelSample::default(); 60],
-            vec![PixelResult::default(); 60],
-        );
+        let (mut px, mut res) = buffers();
         // too few slots
         let e = Mapper::new(
             Mock::new(c.slots_needed() - 1),
