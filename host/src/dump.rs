@@ -69,6 +69,23 @@ pub fn small_config(render_mode: RenderMode) -> ModelConfig {
     }
 }
 
+/// A mapping configuration small enough for end-to-end tests on 64x48 synthetic rooms:
+/// `small` with 12 samples per ray, 40 initialisation iterations (20 with colour to the
+/// geometry), 3 online iterations of 128 pixels, 8 keyframes, and a coarse, sparse mesh
+/// evaluation (0.15 m, 2000 samples). Tests change what they exercise on top of it.
+pub fn tiny_map_config() -> crate::config::Config {
+    let mut c = crate::config::Config::small();
+    c.model.samples = 12;
+    c.mapper.init_iters = 40;
+    c.mapper.init_color_iters = 20;
+    c.mapper.iters = 3;
+    c.mapper.pixels = 128;
+    c.mapper.max_keyframes = 8;
+    c.eval.mesh_resolution = 0.15;
+    c.eval.mesh_samples = 2000;
+    c
+}
+
 /// Random rays from inside the box towards random directions, with synthetic targets.
 pub fn random_rays(n: usize, seed: u64) -> Vec<Ray> {
     let mut rng = SplitMix::new(seed ^ 0x5E_ED0F_7A75);

@@ -12,21 +12,13 @@ use himap_core::mapping::{PixelResult, PixelSample};
 use himap_core::step::ImageStore;
 
 fn tiny_config() -> Config {
-    let mut c = Config::small();
-    c.model.samples = 12;
-    c.mapper.init_iters = 40;
-    c.mapper.init_color_iters = 20;
-    c.mapper.iters = 3;
-    c.mapper.pixels = 128;
+    let mut c = himap::dump::tiny_map_config();
     // The depth prior makes more warp pairs valid as the depth grows, so the summed loss is
     // not monotone with it; this test checks the optimisation of the other terms.
     c.mapper.lambda_depth_prior = 0.0;
     // Likewise the sphere initialisation: the count of valid warp pairs (a sum) changes as
     // the surface moves from the sphere to the walls, so the total loss is not monotone.
     c.model.geo_init = "none".into();
-    c.mapper.max_keyframes = 8;
-    c.eval.mesh_resolution = 0.15;
-    c.eval.mesh_samples = 2000;
     c.eval.renders = 2;
     c
 }

@@ -13,20 +13,12 @@ use himap::synth::{write_synthetic, SynthOptions};
 use himap_vulkan::{fault, VulkanError};
 
 fn tiny_config() -> Config {
-    let mut c = Config::small();
-    c.model.samples = 12;
-    c.mapper.init_iters = 40;
-    c.mapper.init_color_iters = 20;
-    c.mapper.iters = 3;
-    c.mapper.pixels = 128;
-    c.mapper.max_keyframes = 8;
+    let mut c = himap::dump::tiny_map_config();
     // lavapipe's loop budget: a 6-frame window keeps the warping pass exact there (see
     // ARCHITECTURE.md, "llvmpipe's loop budget")
     c.mapper.init_frames = 6;
     c.mapper.local_frames = 6;
     c.mapper.window_keyframes = 2;
-    c.eval.mesh_resolution = 0.15;
-    c.eval.mesh_samples = 2000;
     c.eval.renders = 1;
     c.eval.final_every = 0;
     c
