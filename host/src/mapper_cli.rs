@@ -304,22 +304,36 @@ pub fn load_map_with_meta(
     path: &Path,
 ) -> anyhow::Result<(Config, ModelData, HashMap<String, String>)> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes)
-        .with_context(|| format!("{}: not a safetensors file", path.display()))?;
-    let meta = header
-        .metadata()
-        .clone()
-        .with_context(|| format!("{}: no himap metadata", path.display()))?;
+    load_map_bytes(&bytes).with_context(|| format!("loading map {}", path.display()))
+}
+
+/// [`load_map_with_meta`] of a file already read. The configuration in the file sizes the
+/// map; it is checked against the file's length before the map is allocated.
+pub fn load_map_bytes(
+    bytes: &[u8],
+) -> anyhow::Result<(Config, ModelData, HashMap<String, String>)> {
+    let (_, header) =
+        safetensors::SafeTensors::read_metadata(bytes).context("not a safetensors file")?;
+    let meta = header.metadata().clone().context("no himap metadata")?;
     let get = |k: &str| {
         meta.get(k)
-            .with_context(|| format!("{}: metadata '{k}' missing", path.display()))
+            .with_context(|| format!("metadata '{k}' missing"))
     };
     let config = Config::from_toml(get("himap_config")?)?;
     let [min, max]: [[f32; 3]; 2] = serde_json::from_str(get("himap_aabb")?)?;
     let t: u32 = get("adam_t")?.parse().context("adam_t")?;
     let layout = ModelLayout::new(&config.model_config(Aabb::new(min, max))?)
         .map_err(|e| anyhow::anyhow!("model: {e}"))?;
-    let st = safetensors::SafeTensors::deserialize(&bytes)?;
+    // Parameters and both Adam moments, 4 bytes each, must all be in the file.
+    let need = (layout.param_count() as u64).saturating_mul(12);
+    if need > bytes.len() as u64 {
+        bail!(
+            "its configuration needs {need} bytes of parameters and Adam moments, the file \
+             holds {}",
+            bytes.len()
+        );
+    }
+    let st = safetensors::SafeTensors::deserialize(bytes)?;
     let mut data = ModelData::new(layout, 0).map_err(|e| anyhow::anyhow!("{e}"))?;
     for g in Group::ALL {
         let i = g as usize;
@@ -329,14 +343,9 @@ pub fn load_map_with_meta(
             ("adam_v", &mut data.v[i]),
         ] {
             let name = format!("{prefix}.{}", g.name());
-            let t = st
-                .tensor(&name)
-                .with_context(|| format!("{}: tensor {name}", path.display()))?;
+            let t = st.tensor(&name).with_context(|| format!("tensor {name}"))?;
             if t.dtype() != safetensors::Dtype::F32 || t.data().len() != 4 * dst.len() {
-                bail!(
-                    "{}: tensor {name} has the wrong type or length for the configuration",
-                    path.display()
-                );
+                bail!("tensor {name} has the wrong type or length for the configuration");
             }
             for (d, c) in dst.iter_mut().zip(t.data().as_chunks::<4>().0) {
                 *d = f32::from_le_bytes(*c);

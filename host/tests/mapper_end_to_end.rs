@@ -100,6 +100,19 @@ fn saved_map_renders_bit_identically_after_loading() {
     assert!(format!("{e:#}").contains("safetensors"), "{e:#}");
     let e = load_map(&dir.path().join("missing.safetensors")).unwrap_err();
     assert!(format!("{e:#}").contains("reading"), "{e:#}");
+    // A file whose configuration asks for a far larger map than the file holds: refused
+    // before the map is allocated (1 cm geometry cells over the 4 m box).
+    let mut big = cfg.clone();
+    big.model.geometry.cell_sizes = vec![0.01];
+    let meta = std::collections::HashMap::from([
+        ("himap_config".to_string(), big.to_toml()),
+        ("himap_aabb".to_string(), "[[-2,-2,-2],[2,2,2]]".to_string()),
+        ("adam_t".to_string(), "0".to_string()),
+    ]);
+    let no_tensors: Vec<(&str, safetensors::tensor::TensorView)> = Vec::new();
+    let bytes = safetensors::serialize(no_tensors, Some(meta)).unwrap();
+    let e = himap::mapper_cli::load_map_bytes(&bytes).unwrap_err();
+    assert!(format!("{e:#}").contains("needs"), "{e:#}");
 }
 
 /// A run killed after its first mapping update keeps that update's row in `metrics.csv`

@@ -503,6 +503,8 @@ pub enum DatasetError {
     UnknownLayout { path: PathBuf, msg: String },
     #[error("{}: invalid load option: {msg}", path.display())]
     InvalidOption { path: PathBuf, msg: String },
+    #[error("{}: {msg}", path.display())]
+    TooLarge { path: PathBuf, msg: String },
     #[error("{}: frame {index} out of range (the selection has {len} frames)", path.display())]
     OutOfRange {
         path: PathBuf,
@@ -528,6 +530,7 @@ impl DatasetError {
             | DatasetError::Camera { path, .. }
             | DatasetError::UnknownLayout { path, .. }
             | DatasetError::InvalidOption { path, .. }
+            | DatasetError::TooLarge { path, .. }
             | DatasetError::OutOfRange { path, .. } => path,
         }
     }
@@ -724,6 +727,8 @@ impl Selection {
 pub(crate) fn check_camera(path: &Path, k: &Intrinsics) -> Result<(), DatasetError> {
     let ok = k.width > 0
         && k.height > 0
+        && k.width <= MAX_IMAGE_SIDE
+        && k.height <= MAX_IMAGE_SIDE
         && k.fx.is_finite()
         && k.fy.is_finite()
         && k.fx > 0.0
@@ -736,7 +741,8 @@ pub(crate) fn check_camera(path: &Path, k: &Intrinsics) -> Result<(), DatasetErr
         Err(DatasetError::Camera {
             path: path.to_path_buf(),
             msg: format!(
-                "invalid intrinsics {k:?} (need positive size and focal lengths, finite centre)"
+                "invalid intrinsics {k:?} (need a size of 1..={MAX_IMAGE_SIDE} pixels a side, \
+                 positive focal lengths, a finite centre)"
             ),
         })
     }
@@ -880,8 +886,27 @@ pub(crate) fn check_pose(path: &Path, line: usize, pose: &Pose) -> Result<(), Da
 
 /// Reads a text file into lines.
 pub(crate) fn read_text(path: &Path) -> Result<String, DatasetError> {
+    let len = std::fs::metadata(path)
+        .map_err(|e| DatasetError::io(path, e))?
+        .len();
+    if len > MAX_TEXT_BYTES {
+        return Err(DatasetError::TooLarge {
+            path: path.to_path_buf(),
+            msg: format!(
+                "{len} bytes, over the {MAX_TEXT_BYTES}-byte limit for a dataset text file"
+            ),
+        });
+    }
     std::fs::read_to_string(path).map_err(|e| DatasetError::io(path, e))
 }
+
+/// Largest pose, file-list or camera text file read (256 MiB: a million frames' poses take
+/// about 150 MB); checked before the file is read.
+pub const MAX_TEXT_BYTES: u64 = 256 << 20;
+
+/// Largest image side accepted from a camera description (pixels), checked before any image
+/// buffer is sized from it.
+pub const MAX_IMAGE_SIDE: u32 = 16384;
 
 /// The last path component, for [`Dataset::name`].
 pub(crate) fn folder_name(path: &Path) -> String {

@@ -61,7 +61,11 @@ struct CamParams {
 /// Parses `traj.txt`: one row-major 4x4 camera-to-world matrix per non-empty line (`#` starts a
 /// comment line). Every pose must be a finite rigid transform with last row 0 0 0 1.
 pub fn read_traj(path: &Path) -> Result<Vec<Pose>, DatasetError> {
-    let text = read_text(path)?;
+    parse_traj(&read_text(path)?, path)
+}
+
+/// [`read_traj`] of text already read (`path` names it in errors).
+pub fn parse_traj(text: &str, path: &Path) -> Result<Vec<Pose>, DatasetError> {
     let mut poses = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let line_no = i + 1;
@@ -105,6 +109,31 @@ pub fn read_traj(path: &Path) -> Result<Vec<Pose>, DatasetError> {
         poses.push(pose);
     }
     Ok(poses)
+}
+
+/// Parses `cam_params.json` (`{"camera": {w, h, fx, fy, cx, cy, scale}}`): the camera, checked
+/// like every camera ([`check_camera`]), and the depth scale if given (checked positive).
+pub fn parse_cam_params(
+    text: &str,
+    path: &Path,
+) -> Result<(Intrinsics, Option<f32>), DatasetError> {
+    let p: CamParamsFile = serde_json::from_str(text).map_err(|e| DatasetError::Parse {
+        path: path.to_path_buf(),
+        line: e.line(),
+        msg: format!("expected {{\"camera\": {{w, h, fx, fy, cx, cy, scale}}}}: {e}"),
+    })?;
+    let p = p.camera;
+    let k = Intrinsics {
+        width: p.w,
+        height: p.h,
+        fx: p.fx,
+        fy: p.fy,
+        cx: p.cx,
+        cy: p.cy,
+    };
+    check_camera(path, &k)?;
+    let scale = p.scale.map(|s| check_depth_scale(path, s)).transpose()?;
+    Ok((k, scale))
 }
 
 /// Files by frame index.
@@ -198,41 +227,21 @@ impl ReplicaDataset {
         // Camera and depth scale.
         let params_path = root.join("cam_params.json");
         let params = if params_path.is_file() {
-            let text = read_text(&params_path)?;
-            let p: CamParamsFile =
-                serde_json::from_str(&text).map_err(|e| DatasetError::Parse {
-                    path: params_path.clone(),
-                    line: e.line(),
-                    msg: format!("expected {{\"camera\": {{w, h, fx, fy, cx, cy, scale}}}}: {e}"),
-                })?;
-            Some(p.camera)
+            Some(parse_cam_params(&read_text(&params_path)?, &params_path)?)
         } else {
             None
         };
         let (native, camera_source) = if let Some(c) = &cfg.camera {
             (c.intrinsics(), root.to_path_buf())
-        } else if let Some(p) = &params {
-            (
-                Intrinsics {
-                    width: p.w,
-                    height: p.h,
-                    fx: p.fx,
-                    fy: p.fy,
-                    cx: p.cx,
-                    cy: p.cy,
-                },
-                params_path.clone(),
-            )
+        } else if let Some((k, _)) = &params {
+            (*k, params_path.clone())
         } else {
             (CameraConfig::REPLICA.intrinsics(), root.to_path_buf())
         };
         check_camera(&camera_source, &native)?;
         let depth_scale = match (cfg.depth_scale, &params) {
             (Some(s), _) => Some(check_depth_scale(root, s)?),
-            (None, Some(p)) => match p.scale {
-                Some(s) => Some(check_depth_scale(&params_path, s)?),
-                None => None,
-            },
+            (None, Some((_, scale))) => *scale,
             (None, None) => Some(REPLICA_DEPTH_SCALE),
         };
 

@@ -581,6 +581,17 @@ fn bad_camera_files_and_options() {
         "cam_params.json",
         "invalid intrinsics",
     );
+    // A size no image buffer should be made for.
+    std::fs::write(
+        &params,
+        r#"{"camera": {"w": 4000000000, "h": 6, "fx": 10.0, "fy": 10.0, "cx": 3.5, "cy": 2.5, "scale": 1}}"#,
+    )
+    .unwrap();
+    expect_err(
+        open_default(dir.path()),
+        "cam_params.json",
+        "1..=16384 pixels",
+    );
 
     let dir = replica_fixture(2);
     let opts = LoadOptions {
@@ -1222,4 +1233,15 @@ fn depth_camera_from_the_configuration_registers_every_frame() {
         ..DatasetConfig::default()
     };
     assert!(open_with(dir.path(), &LoadOptions::default(), &bad).is_err());
+}
+
+#[test]
+fn oversized_text_files_are_refused_before_reading() {
+    let dir = replica_fixture(2);
+    // A sparse file: its length is over the limit, its blocks are not written.
+    let f = std::fs::File::create(dir.path().join("traj.txt")).unwrap();
+    f.set_len(super::MAX_TEXT_BYTES + 1).unwrap();
+    drop(f);
+    let e = expect_err(open_default(dir.path()), "traj.txt", "byte limit");
+    assert!(matches!(e, DatasetError::TooLarge { .. }));
 }

@@ -51,7 +51,15 @@ pub struct TumDataset {
 
 /// Parses a `timestamp path` list (`rgb.txt`, `depth.txt`); paths are relative to `root`.
 pub fn read_file_list(path: &Path, root: &Path) -> Result<Vec<(f64, PathBuf)>, DatasetError> {
-    let text = read_text(path)?;
+    parse_file_list(&read_text(path)?, path, root)
+}
+
+/// [`read_file_list`] of text already read (`path` names it in errors).
+pub fn parse_file_list(
+    text: &str,
+    path: &Path,
+    root: &Path,
+) -> Result<Vec<(f64, PathBuf)>, DatasetError> {
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let line = line.trim();
@@ -107,7 +115,11 @@ pub fn quat_to_matrix(q: [f64; 4]) -> [[f64; 3]; 3] {
 /// Parses `groundtruth.txt` into (timestamp, camera-to-world pose), sorted by time. Quaternions
 /// must have a norm within 1e-2 of 1 (they are then normalised).
 pub fn read_groundtruth(path: &Path) -> Result<Vec<(f64, Pose)>, DatasetError> {
-    let text = read_text(path)?;
+    parse_groundtruth(&read_text(path)?, path)
+}
+
+/// [`read_groundtruth`] of text already read (`path` names it in errors).
+pub fn parse_groundtruth(text: &str, path: &Path) -> Result<Vec<(f64, Pose)>, DatasetError> {
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let line_no = i + 1;

@@ -296,9 +296,26 @@ pub fn read_ply_from<R: Read>(r: R) -> Result<Mesh> {
             big: format == Format::Be,
         },
     };
+    // Every property of every entry takes at least one byte (binary) or one character (ASCII),
+    // so a count the body cannot hold is refused before anything is sized from it.
+    for el in &elements {
+        if el.count.saturating_mul(el.props.len()) > rest.len() {
+            bail!(
+                "element '{}' claims {} entries of {} properties, more than the {} bytes after \
+                 the header can hold",
+                el.name,
+                el.count,
+                el.props.len(),
+                rest.len()
+            );
+        }
+    }
     let mut mesh = Mesh::default();
     let mut seen_vertex = false;
     for el in &elements {
+        if el.props.is_empty() && el.name != "vertex" && el.name != "face" {
+            continue; // nothing to read, however many entries it claims
+        }
         match el.name.as_str() {
             "vertex" => {
                 seen_vertex = true;

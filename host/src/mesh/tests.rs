@@ -310,7 +310,7 @@ fn ply_errors_are_clear() {
         err(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n").contains("end_header")
     );
     let trunc = b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\n\
-        property float y\nproperty float z\nend_header\n\0\0\0\0";
+        property float y\nproperty float z\nend_header\n\0\0\0\0\0\0\0\0";
     assert!(err(trunc).contains("ends early"));
     let bad_idx = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
         property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n\
@@ -319,6 +319,20 @@ fn ply_errors_are_clear() {
     let no_z = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
         end_header\n0 0\n";
     assert!(err(no_z.as_bytes()).contains("x, y or z"));
+    // Counts the body cannot hold are refused before anything is sized from them.
+    let huge = b"ply\nformat binary_little_endian 1.0\nelement vertex 4000000000000\n\
+        property float x\nproperty float y\nproperty float z\nend_header\n\0\0\0\0";
+    assert!(err(huge).contains("claims 4000000000000 entries"));
+    let huge_faces = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n\
+        property float y\nproperty float z\nelement face 99999999999999\n\
+        property list uchar int vertex_indices\nend_header\n0 0 0\n";
+    assert!(err(huge_faces.as_bytes()).contains("claims 99999999999999 entries"));
+    // An element without properties takes no bytes however many entries it claims.
+    let empty_el = "ply\nformat ascii 1.0\nelement marker 18446744073709551615\n\
+        element vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n\
+        1 2 3\n";
+    let m = ply::read_ply_from(empty_el.as_bytes()).unwrap();
+    assert_eq!(m.vertices, vec![[1.0, 2.0, 3.0]]);
     let e = Mesh::read_ply(Path::new("/nonexistent/m.ply")).unwrap_err();
     assert!(format!("{e:#}").contains("/nonexistent/m.ply"));
     // Writing refuses inconsistent meshes.
