@@ -17,6 +17,7 @@ pub mod adam;
 pub mod camera;
 pub mod error;
 pub mod fixed;
+pub mod gpu_abi;
 pub mod grid;
 pub mod loss;
 pub mod mapper;

@@ -9,7 +9,8 @@
 //! - workgroups of [`WORKGROUP_SIZE`] invocations along x; one invocation per item
 //!   (`global_invocation_id.x`), items at or past `n` return at once;
 //! - descriptor set 0, bindings numbered from 0 in the order of the parameters;
-//! - scalars that change per dispatch (`n`, seeds) come as push constants ([`Dispatch`]);
+//! - scalars that change per dispatch (`n`, seeds) come as push constants (the blocks of
+//!   `himap_core::gpu_abi`, which also lists every entry point's bindings);
 //! - layouts (offset tables) come as `u32` words in a storage buffer, f32 fields as their bits
 //!   (see [`words`]);
 //! - entry points live at the crate root: rust-gpu names an entry point in a module
@@ -27,10 +28,13 @@
 //! ("not implemented yet"), and `f64` without the `Float64` capability (`math::sin`/`cos`).
 #![cfg_attr(target_arch = "spirv", no_std)]
 
-pub mod words;
-
 use himap_core::adam::{self, AdamStep};
 use himap_core::camera::{Intrinsics, Pose};
+pub use himap_core::gpu_abi::WORKGROUP_SIZE;
+use himap_core::gpu_abi::{
+    words, AdamPush, KernelPush, LossCheckPush, RangePush, SamplePush, TrainPush, PARAM_BINDINGS,
+    PIXEL_RESULT_FLOATS, RAY_FLOATS, RESULT_FLOATS, SAMPLE_FLOATS,
+};
 use himap_core::grid::{self, MAX_GRID_FEATURES};
 use himap_core::mapping::{self, PixelResult, PixelSample, WindowImages, WindowView};
 use himap_core::mlp::{self, MlpScratch, MAX_OUT, MAX_WIDTH};
@@ -43,21 +47,6 @@ use spirv_std::arch::atomic_i_add;
 use spirv_std::glam::UVec3;
 use spirv_std::memory::{Scope, Semantics};
 use spirv_std::spirv;
-
-/// Invocations per workgroup of every entry point (x only).
-pub const WORKGROUP_SIZE: u32 = 64;
-
-/// Push constants of every entry point.
-#[derive(Clone, Copy)]
-#[repr(C)]
-pub struct Dispatch {
-    /// Number of items; invocations with `id.x >= n` do nothing.
-    pub n: u32,
-    /// Entry-point specific (seed, bucket count, ...).
-    pub a: u32,
-    pub b: u32,
-    pub c: u32,
-}
 
 /// A [`GradSink`] over a storage buffer: each contribution is converted with
 /// [`fixed::to_fixed`] and added with a 64-bit integer atomic, so the sums equal
@@ -92,11 +81,11 @@ impl GradSink for AtomicSink<'_> {
 ///   [`words::INTRINSICS`] at 18 (24 words);
 /// - binding 1 `out`: 4 floats per pixel: normalized x, y, z, `from_fixed(to_fixed(u))`.
 ///
-/// Push constants: `n` = pixel count, `a` = seed.
+/// Push constants ([`KernelPush`]): `n` = pixel count, `arg` = seed.
 #[spirv(compute(threads(64)))]
 pub fn probe_cs(
     #[spirv(global_invocation_id)] id: UVec3,
-    #[spirv(push_constant)] pc: &Dispatch,
+    #[spirv(push_constant)] pc: &KernelPush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] scene: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] out: &mut [f32],
 ) {
@@ -110,7 +99,7 @@ pub fn probe_cs(
     let w = if k.width == 0 { 1 } else { k.width };
     let (u, v) = ((i % w) as f32, (i / w) as f32);
     let (o, d) = pose.ray(&k, u, v);
-    let r = rng::uniform(pc.a, i, 0);
+    let r = rng::uniform(pc.arg, i, 0);
     let t = 0.5 + 4.0 * r;
     let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
     let x = aabb.normalize(p);
@@ -127,12 +116,12 @@ pub fn probe_cs(
 /// - binding 0 `values`: `n` floats;
 /// - binding 1 `acc`: the `i64` accumulators.
 ///
-/// Push constants: `n` = number of values, `a` = buckets (0 or more than `acc.len()` means
+/// Push constants ([`KernelPush`]): `n` = number of values, `arg` = buckets (0 or more than `acc.len()` means
 /// `acc.len()`).
 #[spirv(compute(threads(64)))]
 pub fn fixed_accumulate_cs(
     #[spirv(global_invocation_id)] id: UVec3,
-    #[spirv(push_constant)] pc: &Dispatch,
+    #[spirv(push_constant)] pc: &KernelPush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] values: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] acc: &mut [i64],
 ) {
@@ -141,7 +130,7 @@ pub fn fixed_accumulate_cs(
     if i >= pc.n as usize || i >= values.len() || len == 0 {
         return;
     }
-    let mut buckets = pc.a as usize;
+    let mut buckets = pc.arg as usize;
     if buckets == 0 || buckets > len {
         buckets = len;
     }
@@ -161,7 +150,7 @@ pub fn fixed_accumulate_cs(
 #[spirv(compute(threads(64)))]
 pub fn mlp_forward_cs(
     #[spirv(global_invocation_id)] id: UVec3,
-    #[spirv(push_constant)] pc: &Dispatch,
+    #[spirv(push_constant)] pc: &KernelPush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] layout: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] params: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] inputs: &[f32],
@@ -202,7 +191,7 @@ pub fn mlp_forward_cs(
 #[spirv(compute(threads(64)))]
 pub fn grid_forward_cs(
     #[spirv(global_invocation_id)] id: UVec3,
-    #[spirv(push_constant)] pc: &Dispatch,
+    #[spirv(push_constant)] pc: &KernelPush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] layout: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] params: &[f32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] positions: &[f32],
@@ -223,72 +212,6 @@ pub fn grid_forward_cs(
         out[base + k] = feat[k];
         k += 1;
     }
-}
-
-/// Floats of one [`Ray`] in the rays buffer: origin (3), dir (3), target (3), target_depth.
-pub const RAY_FLOATS: usize = 10;
-/// Floats of one [`model::RayResult`] in the results buffer: colour (3), depth, opacity, loss.
-pub const RESULT_FLOATS: usize = 6;
-
-/// Push constants of [`train_ray_cs`]: the [`LossConfig`] of the step plus the item range.
-#[derive(Clone, Copy)]
-#[repr(C)]
-pub struct TrainPush {
-    /// Rays in this dispatch; invocation `i` handles ray `first + i`.
-    pub n: u32,
-    /// Index of the dispatch's first ray (dispatches larger than the workgroup-count limit are
-    /// split); the ray index is the ray's id for the stratified jitter.
-    pub first: u32,
-    pub seed: u32,
-    /// `LossConfig::color_to_geometry` as 0 / 1.
-    pub color_to_geometry: u32,
-    pub lambda_color: f32,
-    pub lambda_depth: f32,
-    pub ray_scale: f32,
-    pub _pad: u32,
-}
-
-/// Push constants of [`adam_cs`]: the [`AdamStep`] scalars plus the item range.
-#[derive(Clone, Copy)]
-#[repr(C)]
-pub struct AdamPush {
-    /// Parameters in this dispatch; invocation `i` updates parameter `first + i`.
-    pub n: u32,
-    pub first: u32,
-    pub lr: f32,
-    pub beta1: f32,
-    pub beta2: f32,
-    pub eps: f32,
-    pub bias_correction1: f32,
-    pub bias_correction2: f32,
-}
-
-/// Push constants of [`loss_check_cs`]: the item range and where a record's loss fields are.
-#[derive(Clone, Copy)]
-#[repr(C)]
-pub struct LossCheckPush {
-    /// Records in this dispatch; invocation `i` checks record `first + i`.
-    pub n: u32,
-    pub first: u32,
-    /// Floats per record ([`RESULT_FLOATS`] or [`PIXEL_RESULT_FLOATS`]).
-    pub stride: u32,
-    /// The two loss fields' offsets in a record (the same twice for a single loss).
-    pub loss_a: u32,
-    pub loss_b: u32,
-    pub _pad0: u32,
-    pub _pad1: u32,
-    pub _pad2: u32,
-}
-
-/// Push constants of the per-item entry points without extra scalars (render, queries).
-#[derive(Clone, Copy)]
-#[repr(C)]
-pub struct RangePush {
-    /// Items in this dispatch; invocation `i` handles item `first + i`.
-    pub n: u32,
-    pub first: u32,
-    pub _pad0: u32,
-    pub _pad1: u32,
 }
 
 /// A [`ModelGradSink`] over the five fixed-point gradient buffers (one storage buffer per
@@ -486,34 +409,6 @@ fn write_result(out: &mut [f32], i: usize, color: [f32; 3], depth: f32, opacity:
 #[inline(always)]
 fn first_or_zero(v: &[f32]) -> f32 {
     float_at(v, 0)
-}
-
-/// The parameter bindings of the entry points that read the field (after binding 0, the
-/// model words [`words::MODEL_WORDS`]): geometry grid (low, high part), appearance grid (low,
-/// high part), geometry MLP, appearance MLP, beta (one float). A grid in one binding has its
-/// high part bound to any buffer and split point `u32::MAX`.
-pub const PARAM_BINDINGS: usize = 7;
-
-/// Floats of one sample record in the samples buffer: `t`, `sdf`, `rgb` (3) written by
-/// [`sample_forward_cs`], then `d_sdf`, `d_rgb` (3) written by the composite passes
-/// ([`ray_train_cs`], [`pixel_train_cs`]). Sample `k` of ray `r` is record `r * S + k`, with
-/// `S = layout.config.samples`.
-pub const SAMPLE_FLOATS: usize = 9;
-/// Floats of one [`PixelResult`] in the results buffer: colour (3), depth, opacity,
-/// colour loss, warp loss, valid views (as f32, exact).
-pub const PIXEL_RESULT_FLOATS: usize = 8;
-
-/// Push constants of the per-sample passes.
-#[derive(Clone, Copy)]
-#[repr(C)]
-pub struct SamplePush {
-    /// Sample records in this dispatch; invocation `i` handles record `first + i`.
-    pub n: u32,
-    pub first: u32,
-    /// Stratified jitter seed ([`sample_forward_cs`]).
-    pub seed: u32,
-    /// 1: jittered samples (training), 0: bin centres (rendering).
-    pub jitter: u32,
 }
 
 /// Samples per ray of a layout (`config.samples`, at most `MAX_SAMPLES`, at least 1).

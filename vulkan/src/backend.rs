@@ -37,21 +37,16 @@ use crate::raw::{Buffer, Gpu, Memory, Pipeline, Recorder, Set, ShaderModule};
 use crate::{entry, words, WORKGROUP_SIZE};
 use himap_core::adam::{AdamConfig, AdamStep};
 use himap_core::error::check_len;
+use himap_core::gpu_abi::{
+    AdamPush, LossCheckPush, PushWords, RangePush, SamplePush, TrainPush, PIXEL_RESULT_FLOATS,
+    PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS, SAMPLE_FLOATS,
+};
 use himap_core::mapping::PixelResult;
 use himap_core::model::{Group, LossConfig, ModelLayout, Ray, RayResult, NUM_GROUPS};
 use himap_core::render::MAX_SAMPLES;
 use himap_core::step::{
     summarize, summarize_pixels, window_slots, Backend, ImageStore, MapBatch, StepStats,
 };
-
-/// Floats per ray in the rays buffer (see `himap_shaders::RAY_FLOATS`).
-const RAY_FLOATS: usize = 10;
-/// Floats per ray result (`RESULT_FLOATS`).
-const RESULT_FLOATS: usize = 6;
-/// Floats per sample record (`SAMPLE_FLOATS`).
-const SAMPLE_FLOATS: usize = 9;
-/// Floats per pixel result (`PIXEL_RESULT_FLOATS`).
-const PIXEL_RESULT_FLOATS: usize = 8;
 
 struct Pipelines {
     sample_forward: Pipeline,
@@ -289,7 +284,8 @@ fn download(
     Ok(())
 }
 
-fn push_bytes(words: [u32; 8]) -> [u8; 32] {
+fn push_bytes(p: impl PushWords) -> [u8; 32] {
+    let words = p.words();
     let mut b = [0u8; 32];
     for (i, w) in words.iter().enumerate() {
         b[4 * i..4 * i + 4].copy_from_slice(&w.to_le_bytes());
@@ -389,17 +385,17 @@ impl VulkanBackend {
         let mut gpu = Gpu::new(&device)?;
         let module = ShaderModule::new(&device, &crate::shader_words())?;
         let pipelines = Pipelines {
-            sample_forward: Pipeline::new(&device, &module, entry::SAMPLE_FORWARD, 10, 16)?,
-            ray_train: Pipeline::new(&device, &module, entry::RAY_TRAIN, 6, 32)?,
-            sample_backward: Pipeline::new(&device, &module, entry::SAMPLE_BACKWARD, 17, 16)?,
-            ray_render: Pipeline::new(&device, &module, entry::RAY_RENDER, 5, 16)?,
-            pixel_rays: Pipeline::new(&device, &module, entry::PIXEL_RAYS, 4, 16)?,
-            pixel_train: Pipeline::new(&device, &module, entry::PIXEL_TRAIN, 9, 16)?,
-            adam: Pipeline::new(&device, &module, entry::ADAM, 5, 32)?,
-            loss_check: Pipeline::new(&device, &module, entry::LOSS_CHECK, 2, 32)?,
-            adam_check: Pipeline::new(&device, &module, entry::ADAM_CHECK, 5, 32)?,
-            sdf: Pipeline::new(&device, &module, entry::SDF_QUERY, 10, 16)?,
-            color: Pipeline::new(&device, &module, entry::COLOR_QUERY, 10, 16)?,
+            sample_forward: Pipeline::new(&device, &module, &entry::SAMPLE_FORWARD)?,
+            ray_train: Pipeline::new(&device, &module, &entry::RAY_TRAIN)?,
+            sample_backward: Pipeline::new(&device, &module, &entry::SAMPLE_BACKWARD)?,
+            ray_render: Pipeline::new(&device, &module, &entry::RAY_RENDER)?,
+            pixel_rays: Pipeline::new(&device, &module, &entry::PIXEL_RAYS)?,
+            pixel_train: Pipeline::new(&device, &module, &entry::PIXEL_TRAIN)?,
+            adam: Pipeline::new(&device, &module, &entry::ADAM)?,
+            loss_check: Pipeline::new(&device, &module, &entry::LOSS_CHECK)?,
+            adam_check: Pipeline::new(&device, &module, &entry::ADAM_CHECK)?,
+            sdf: Pipeline::new(&device, &module, &entry::SDF_QUERY)?,
+            color: Pipeline::new(&device, &module, &entry::COLOR_QUERY)?,
         };
         let w = model_words(&layout, [&part_lens[0], &part_lens[1]]);
         let mut staging = None;
@@ -752,7 +748,11 @@ fn dispatch_items<'a>(
 
 /// Push constants of the entry points that take only the item range.
 fn range_push(first: u32, count: u32) -> [u8; 32] {
-    push_bytes([count, first, 0, 0, 0, 0, 0, 0])
+    push_bytes(RangePush {
+        n: count,
+        first,
+        ..Default::default()
+    })
 }
 
 /// What the passes of one submission share: pipelines, model buffers, and the batch's rays
@@ -803,7 +803,14 @@ impl<'a> Passes<'a> {
             &set,
             self.records,
             self.max_groups,
-            |first, count| push_bytes([count, first, seed, jitter as u32, 0, 0, 0, 0]),
+            |first, count| {
+                push_bytes(SamplePush {
+                    n: count,
+                    first,
+                    seed,
+                    jitter: jitter as u32,
+                })
+            },
         );
         r.barrier();
         Ok(())
@@ -842,16 +849,14 @@ impl<'a> Passes<'a> {
         let pipeline = &self.pipelines.loss_check;
         let set = r.bind(pipeline, &[results, self.status])?;
         dispatch_items(r, pipeline, &set, n, self.max_groups, |first, count| {
-            push_bytes([
-                count,
+            push_bytes(LossCheckPush {
+                n: count,
                 first,
-                stride as u32,
-                losses.0 as u32,
-                losses.1 as u32,
-                0,
-                0,
-                0,
-            ])
+                stride: stride as u32,
+                loss_a: losses.0 as u32,
+                loss_b: losses.1 as u32,
+                ..Default::default()
+            })
         });
         r.barrier();
         self.adam(r, steps, &self.pipelines.adam_check)?;
@@ -879,16 +884,16 @@ impl<'a> Passes<'a> {
                     part.len,
                     self.max_groups,
                     |first, count| {
-                        push_bytes([
-                            count,
+                        push_bytes(AdamPush {
+                            n: count,
                             first,
-                            s.lr.to_bits(),
-                            s.beta1.to_bits(),
-                            s.beta2.to_bits(),
-                            s.eps.to_bits(),
-                            s.bias_correction1.to_bits(),
-                            s.bias_correction2.to_bits(),
-                        ])
+                            lr: s.lr,
+                            beta1: s.beta1,
+                            beta2: s.beta2,
+                            eps: s.eps,
+                            bias_correction1: s.bias_correction1,
+                            bias_correction2: s.bias_correction2,
+                        })
                     },
                 );
             }
@@ -947,16 +952,16 @@ impl Backend for VulkanBackend {
         let steps = self.adam_steps();
         let n = rays.len();
         let train_push = |first: u32, count: u32| {
-            push_bytes([
-                count,
+            push_bytes(TrainPush {
+                n: count,
                 first,
-                loss.seed,
-                loss.color_to_geometry as u32,
-                loss.lambda_color.to_bits(),
-                loss.lambda_depth.to_bits(),
-                loss.ray_scale.to_bits(),
-                0,
-            ])
+                seed: loss.seed,
+                color_to_geometry: loss.color_to_geometry as u32,
+                lambda_color: loss.lambda_color,
+                lambda_depth: loss.lambda_depth,
+                ray_scale: loss.ray_scale,
+                _pad: 0,
+            })
         };
         let (gpu, passes, output) = self.ray_passes(records)?;
         let (pipelines, groups, model_words, input, samples) = (
@@ -986,7 +991,7 @@ impl Backend for VulkanBackend {
                 r.barrier();
                 passes.sample_backward(r)?;
             }
-            passes.checked_adam(r, &steps, output, n, RESULT_FLOATS, (5, 5))
+            passes.checked_adam(r, &steps, output, n, RESULT_FLOATS, RESULT_LOSS)
         })?;
         self.read_results(results);
         let stats = summarize(results, self.t);
@@ -1218,7 +1223,14 @@ impl Backend for VulkanBackend {
                 r.barrier();
                 passes.sample_backward(r)?;
             }
-            passes.checked_adam(r, &steps, output, n, PIXEL_RESULT_FLOATS, (5, 6))
+            passes.checked_adam(
+                r,
+                &steps,
+                output,
+                n,
+                PIXEL_RESULT_FLOATS,
+                PIXEL_RESULT_LOSSES,
+            )
         })?;
         let f = self.read_floats(n * PIXEL_RESULT_FLOATS);
         for (r, v) in results
@@ -1285,8 +1297,21 @@ mod tests {
 
     #[test]
     fn push_bytes_are_little_endian_words() {
-        let b = push_bytes([1, 0x0403_0201, 0, 0, 0, 0, 0, 1.0f32.to_bits()]);
+        let b = push_bytes(AdamPush {
+            n: 1,
+            first: 0x0403_0201,
+            bias_correction2: 1.0,
+            ..Default::default()
+        });
         assert_eq!(&b[..8], &[1, 0, 0, 0, 1, 2, 3, 4]);
         assert_eq!(&b[28..], &1.0f32.to_le_bytes());
+        // Blocks shorter than 8 words leave the rest zero (only their size is pushed).
+        let r = push_bytes(RangePush {
+            n: 7,
+            first: 9,
+            ..Default::default()
+        });
+        assert_eq!(&r[..8], &[7, 0, 0, 0, 9, 0, 0, 0]);
+        assert!(r[8..].iter().all(|&x| x == 0));
     }
 }

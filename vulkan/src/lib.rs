@@ -32,27 +32,9 @@ mod shader_info {
 }
 pub use shader_info::{ENTRY_POINTS, NO_CONTRACTION_DECORATIONS};
 
-/// Entry point names (see `shaders/src/lib.rs` for their bindings).
-pub mod entry {
-    pub const PROBE: &str = "probe_cs";
-    pub const FIXED_ACCUMULATE: &str = "fixed_accumulate_cs";
-    pub const MLP_FORWARD: &str = "mlp_forward_cs";
-    pub const GRID_FORWARD: &str = "grid_forward_cs";
-    pub const SAMPLE_FORWARD: &str = "sample_forward_cs";
-    pub const RAY_TRAIN: &str = "ray_train_cs";
-    pub const SAMPLE_BACKWARD: &str = "sample_backward_cs";
-    pub const RAY_RENDER: &str = "ray_render_cs";
-    pub const PIXEL_RAYS: &str = "pixel_rays_cs";
-    pub const PIXEL_TRAIN: &str = "pixel_train_cs";
-    pub const ADAM: &str = "adam_cs";
-    pub const LOSS_CHECK: &str = "loss_check_cs";
-    pub const ADAM_CHECK: &str = "adam_check_cs";
-    pub const SDF_QUERY: &str = "sdf_query_cs";
-    pub const COLOR_QUERY: &str = "color_query_cs";
-}
-
-/// Workgroup size (x) of every entry point.
-pub const WORKGROUP_SIZE: u32 = 64;
+/// The CPU/GPU interface (entry points with their bindings and push-constant sizes, record
+/// sizes, push-constant blocks, layouts as words), defined once in `himap-core`.
+pub use himap_core::gpu_abi::{entry, words, EntryPoint, WORKGROUP_SIZE};
 
 /// Fault injection for the GPU-failure tests (cargo feature `fault-injection`, test builds
 /// only): after a given number of further mapping steps, every submission fails as on a lost
@@ -98,11 +80,6 @@ pub mod fault {
     }
 }
 
-/// Layouts and scene constants as `u32` words, the exact encoding the shaders decode (one
-/// source file shared with `himap-shaders`).
-#[path = "../../shaders/src/words.rs"]
-pub mod words;
-
 /// The module as `u32` words.
 pub fn shader_words() -> Vec<u32> {
     let (words, rest) = SHADERS_SPV.as_chunks::<4>();
@@ -113,9 +90,6 @@ pub fn shader_words() -> Vec<u32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use himap_core::camera::{Intrinsics, Pose};
-    use himap_core::grid::{GridConfig, GridKind, GridLayout};
-    use himap_core::Aabb;
     use rspirv::dr::{Module, Operand};
     use rspirv::spirv::{Capability, Decoration, ExecutionMode, Op};
     use std::collections::{BTreeMap, BTreeSet};
@@ -141,23 +115,11 @@ mod tests {
             }
         }
         let listed: BTreeSet<&str> = names.values().map(|s| s.as_str()).collect();
-        for want in [
-            entry::PROBE,
-            entry::FIXED_ACCUMULATE,
-            entry::MLP_FORWARD,
-            entry::GRID_FORWARD,
-            entry::SAMPLE_FORWARD,
-            entry::RAY_TRAIN,
-            entry::SAMPLE_BACKWARD,
-            entry::RAY_RENDER,
-            entry::PIXEL_RAYS,
-            entry::PIXEL_TRAIN,
-            entry::ADAM,
-            entry::SDF_QUERY,
-            entry::COLOR_QUERY,
-        ] {
-            assert!(listed.contains(want), "{want} missing from {listed:?}");
-            assert!(ENTRY_POINTS.contains(&want));
+        // The module's entry points are exactly the ABI's table.
+        let table: BTreeSet<&str> = entry::ALL.iter().map(|e| e.name).collect();
+        assert_eq!(listed, table);
+        for e in entry::ALL {
+            assert!(ENTRY_POINTS.contains(&e.name));
         }
         assert_eq!(listed.len(), ENTRY_POINTS.len());
         // Every entry point runs 64 x 1 x 1 invocations per workgroup.
@@ -190,30 +152,14 @@ mod tests {
     }
 
     /// Each entry point uses every storage-buffer binding at most once and none past its
-    /// declared count (the counts the host's pipelines are built with). Caught a renumbering
+    /// declared count (`himap_core::gpu_abi::entry`, which the host's pipelines are built
+    /// with). Caught a renumbering
     /// slip that gave `pixel_train_cs` two parameters at binding 8 and one at 9: lavapipe ran
     /// it without complaint, reading garbage.
     #[test]
     fn entry_point_bindings_are_distinct_and_in_range() {
-        let declared: BTreeMap<&str, u32> = [
-            (entry::PROBE, 2),
-            (entry::FIXED_ACCUMULATE, 2),
-            (entry::MLP_FORWARD, 4),
-            (entry::GRID_FORWARD, 4),
-            (entry::SAMPLE_FORWARD, 10),
-            (entry::RAY_TRAIN, 6),
-            (entry::SAMPLE_BACKWARD, 17),
-            (entry::RAY_RENDER, 5),
-            (entry::PIXEL_RAYS, 4),
-            (entry::PIXEL_TRAIN, 9),
-            (entry::ADAM, 5),
-            (entry::LOSS_CHECK, 2),
-            (entry::ADAM_CHECK, 5),
-            (entry::SDF_QUERY, 10),
-            (entry::COLOR_QUERY, 10),
-        ]
-        .into_iter()
-        .collect();
+        let declared: BTreeMap<&str, u32> =
+            entry::ALL.iter().map(|e| (e.name, e.bindings)).collect();
         let m = module();
         let mut binding = BTreeMap::new();
         for a in &m.annotations {
@@ -333,60 +279,5 @@ mod tests {
             narrow <= 2,
             "{narrow} 32-bit atomics: only the two checks count"
         );
-    }
-
-    #[test]
-    fn words_round_trip() {
-        let aabb = Aabb::new([-1.0, -2.0, 0.5], [3.0, 1.0, 2.75]);
-        for kind in [GridKind::Factorized, GridKind::Dense] {
-            let g = GridLayout::new(&GridConfig::hi_map_geometry().with_kind(kind), aabb).unwrap();
-            let mut w = [0u32; words::GRID_LAYOUT];
-            words::grid_layout_to_words(&g, &mut w, 0);
-            assert_eq!(words::grid_layout_from_words(&w, 0), g);
-            // Words past the end of a short buffer read as zeros instead of panicking.
-            let short = words::grid_layout_from_words(&w[..3], 0);
-            assert_eq!((short.levels, short.param_count), (g.levels, 0));
-            assert_eq!((short.aabb.max, short.level[0].res), ([0.0; 3], [0; 3]));
-        }
-        let pose = Pose {
-            m: [
-                [0.0, 0.0, 1.0, 1.5],
-                [0.0, 1.0, 0.0, -2.0],
-                [-1.0, 0.0, 0.0, 3.25],
-            ],
-        };
-        let k = Intrinsics {
-            width: 1200,
-            height: 680,
-            fx: 600.0,
-            fy: 600.5,
-            cx: 599.5,
-            cy: 339.5,
-        };
-        let mut w = [0u32; words::AABB + words::POSE + words::INTRINSICS];
-        words::aabb_to_words(&aabb, &mut w, 0);
-        words::pose_to_words(&pose, &mut w, 6);
-        words::intrinsics_to_words(&k, &mut w, 18);
-        assert_eq!(words::aabb_from_words(&w, 0), aabb);
-        assert_eq!(words::pose_from_words(&w, 6), pose);
-        assert_eq!(words::intrinsics_from_words(&w, 18), k);
-        assert_eq!(w[0], (-1.0f32).to_bits());
-        assert_eq!(w[18], 1200);
-        // The whole model layout (what train/render/query shaders decode), every render mode.
-        for mode in [
-            himap_core::render::RenderMode::SdfDensity,
-            himap_core::render::RenderMode::SdfDirect,
-            himap_core::render::RenderMode::Occupancy,
-        ] {
-            let mut cfg = himap_core::model::ModelConfig::paper(aabb);
-            cfg.render_mode = mode;
-            cfg.dual_path = mode != himap_core::render::RenderMode::SdfDirect;
-            cfg.appearance_grid = cfg.appearance_grid.with_kind(GridKind::Dense);
-            cfg.appearance_grid.cell_sizes[1] = 0.5;
-            let l = himap_core::model::ModelLayout::new(&cfg).unwrap();
-            let mut w = vec![0u32; words::MODEL_LAYOUT];
-            words::model_layout_to_words(&l, &mut w, 0);
-            assert_eq!(words::model_layout_from_words(&w, 0), l);
-        }
     }
 }

@@ -492,8 +492,8 @@ impl Drop for ShaderModule {
     }
 }
 
-/// A compute pipeline whose descriptor set 0 has `bindings` storage buffers, plus
-/// `push_size` bytes of push constants.
+/// A compute pipeline of one entry point of the ABI's table: its descriptor set 0 has the
+/// entry's storage buffers, plus its push-constant bytes.
 pub(crate) struct Pipeline {
     device: Arc<Device>,
     set_layout: vk::DescriptorSetLayout,
@@ -512,10 +512,10 @@ impl Pipeline {
     pub fn new(
         device: &Arc<Device>,
         module: &ShaderModule,
-        entry: &str,
-        bindings: u32,
-        push_size: u32,
+        entry: &himap_core::gpu_abi::EntryPoint,
     ) -> Result<Self, VulkanError> {
+        let (bindings, push_size) = (entry.bindings, entry.push_size);
+        let entry = entry.name;
         let d = &device.device;
         let b: Vec<_> = (0..bindings)
             .map(|i| {

@@ -1,8 +1,7 @@
 //! Layouts and scene constants as flat `u32` words (f32 fields as their bits), the form in
 //! which they reach the shaders through a storage buffer.
 //!
-//! Both directions live here, in plain `no_std` Rust without dependencies beyond `himap-core`,
-//! so the shader (decode) and the Vulkan host (encode, included with `#[path]`) share one
+//! Both directions live here, so the shader (decode) and the Vulkan host (encode) share one
 //! definition. Decoders never panic: words past the end of the slice read as 0.
 //!
 //! | item | words | order |
@@ -18,14 +17,14 @@
 //! | [`MappingLoss`] | [`MAPPING_LOSS`] = 17 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior, depth_prior_near |
 //! | window | [`WINDOW`] = 448 | intrinsics, frames, image width, image height, slots ([`MAX_WINDOW`]), poses ([`MAX_WINDOW`] x [`POSE`]), mapping loss |
 
-use himap_core::camera::{Intrinsics, Pose, PoseRead};
-use himap_core::grid::{GridConfig, GridKind, GridLayout, LevelLayout, MAX_LEVELS};
-use himap_core::mapping::MappingLoss;
-use himap_core::mlp::{MlpLayout, MAX_HIDDEN_LAYERS};
-use himap_core::model::{ModelConfig, ModelLayout};
-use himap_core::render::RenderMode;
-use himap_core::warp::{WarpConfig, MAX_WINDOW};
-use himap_core::Aabb;
+use crate::camera::{Intrinsics, Pose, PoseRead};
+use crate::grid::{GridConfig, GridKind, GridLayout, LevelLayout, MAX_LEVELS};
+use crate::mapping::MappingLoss;
+use crate::mlp::{MlpLayout, MAX_HIDDEN_LAYERS};
+use crate::model::{ModelConfig, ModelLayout};
+use crate::render::RenderMode;
+use crate::warp::{WarpConfig, MAX_WINDOW};
+use crate::Aabb;
 
 /// Words of an [`Aabb`].
 pub const AABB: usize = 6;
@@ -463,6 +462,69 @@ impl PoseRead for WordPoses<'_> {
             pose_from_words(self.words, WINDOW_POSES + i * POSE)
         } else {
             Pose::IDENTITY
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::camera::{Intrinsics, Pose};
+    use crate::gpu_abi::words;
+    use crate::grid::{GridConfig, GridKind, GridLayout};
+    use crate::Aabb;
+
+    #[test]
+    fn words_round_trip() {
+        let aabb = Aabb::new([-1.0, -2.0, 0.5], [3.0, 1.0, 2.75]);
+        for kind in [GridKind::Factorized, GridKind::Dense] {
+            let g = GridLayout::new(&GridConfig::hi_map_geometry().with_kind(kind), aabb).unwrap();
+            let mut w = [0u32; words::GRID_LAYOUT];
+            words::grid_layout_to_words(&g, &mut w, 0);
+            assert_eq!(words::grid_layout_from_words(&w, 0), g);
+            // Words past the end of a short buffer read as zeros instead of panicking.
+            let short = words::grid_layout_from_words(&w[..3], 0);
+            assert_eq!((short.levels, short.param_count), (g.levels, 0));
+            assert_eq!((short.aabb.max, short.level[0].res), ([0.0; 3], [0; 3]));
+        }
+        let pose = Pose {
+            m: [
+                [0.0, 0.0, 1.0, 1.5],
+                [0.0, 1.0, 0.0, -2.0],
+                [-1.0, 0.0, 0.0, 3.25],
+            ],
+        };
+        let k = Intrinsics {
+            width: 1200,
+            height: 680,
+            fx: 600.0,
+            fy: 600.5,
+            cx: 599.5,
+            cy: 339.5,
+        };
+        let mut w = [0u32; words::AABB + words::POSE + words::INTRINSICS];
+        words::aabb_to_words(&aabb, &mut w, 0);
+        words::pose_to_words(&pose, &mut w, 6);
+        words::intrinsics_to_words(&k, &mut w, 18);
+        assert_eq!(words::aabb_from_words(&w, 0), aabb);
+        assert_eq!(words::pose_from_words(&w, 6), pose);
+        assert_eq!(words::intrinsics_from_words(&w, 18), k);
+        assert_eq!(w[0], (-1.0f32).to_bits());
+        assert_eq!(w[18], 1200);
+        // The whole model layout (what train/render/query shaders decode), every render mode.
+        for mode in [
+            crate::render::RenderMode::SdfDensity,
+            crate::render::RenderMode::SdfDirect,
+            crate::render::RenderMode::Occupancy,
+        ] {
+            let mut cfg = crate::model::ModelConfig::paper(aabb);
+            cfg.render_mode = mode;
+            cfg.dual_path = mode != crate::render::RenderMode::SdfDirect;
+            cfg.appearance_grid = cfg.appearance_grid.with_kind(GridKind::Dense);
+            cfg.appearance_grid.cell_sizes[1] = 0.5;
+            let l = crate::model::ModelLayout::new(&cfg).unwrap();
+            let mut w = vec![0u32; words::MODEL_LAYOUT];
+            words::model_layout_to_words(&l, &mut w, 0);
+            assert_eq!(words::model_layout_from_words(&w, 0), l);
         }
     }
 }

@@ -1,0 +1,298 @@
+//! The CPU/GPU interface, defined once: what `himap-vulkan` writes and `himap-shaders` reads.
+//!
+//! - [`words`]: layouts and scene constants as flat `u32` words (storage buffers);
+//! - record sizes of the storage buffers ([`RAY_FLOATS`], [`RESULT_FLOATS`], ...);
+//! - the push-constant blocks, `#[repr(C)]` with their sizes asserted at compile time;
+//! - [`entry`]: every entry point's name, storage-buffer binding count and push-constant size,
+//!   from which the host builds its pipelines (and which a test checks against the compiled
+//!   module).
+//!
+//! Every entry point runs [`WORKGROUP_SIZE`] x 1 x 1 invocations per workgroup; invocation `i`
+//! of a dispatch handles item `first + i` when `i < n` (dispatches larger than the
+//! workgroup-count limit are split).
+
+pub mod words;
+
+use core::mem::size_of;
+
+/// Invocations per workgroup of every entry point (x only).
+pub const WORKGROUP_SIZE: u32 = 64;
+
+/// Floats of one [`crate::model::Ray`] in a rays buffer: origin (3), dir (3), target (3),
+/// target_depth.
+pub const RAY_FLOATS: usize = 10;
+/// Floats of one [`crate::model::RayResult`] in a results buffer: colour (3), depth, opacity,
+/// loss.
+pub const RESULT_FLOATS: usize = 6;
+/// Floats of one sample record: `t`, `sdf`, `rgb` (3) written by the per-sample forward pass,
+/// then `d_sdf`, `d_rgb` (3) written by the composite passes. Sample `k` of ray `r` is record
+/// `r * S + k`, with `S = layout.config.samples`.
+pub const SAMPLE_FLOATS: usize = 9;
+/// Floats of one [`crate::mapping::PixelResult`] in a results buffer: colour (3), depth,
+/// opacity, colour loss, warp loss, valid views (as f32, exact).
+pub const PIXEL_RESULT_FLOATS: usize = 8;
+/// The parameter bindings of the entry points that read the field (after binding 0, the model
+/// words [`words::MODEL_WORDS`]): geometry grid (low, high part), appearance grid (low, high
+/// part), geometry MLP, appearance MLP, beta (one float). A grid in one binding has its high
+/// part bound to any buffer and split point `u32::MAX`.
+pub const PARAM_BINDINGS: usize = 7;
+/// Offsets of the loss fields in a [`RESULT_FLOATS`] record (the same twice: one loss).
+pub const RESULT_LOSS: (usize, usize) = (5, 5);
+/// Offsets of the colour and warp loss fields in a [`PIXEL_RESULT_FLOATS`] record.
+pub const PIXEL_RESULT_LOSSES: (usize, usize) = (5, 6);
+
+/// Push constants of the single-kernel entry points (probe, fixed-point accumulation, MLP
+/// and grid forward).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[repr(C)]
+pub struct KernelPush {
+    /// Number of items; invocations with `id.x >= n` do nothing.
+    pub n: u32,
+    /// The seed (`probe_cs`) or the bucket count (`fixed_accumulate_cs`); unused otherwise.
+    pub arg: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+}
+
+/// Push constants of the per-item entry points without extra scalars (render, queries,
+/// backward, warping).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[repr(C)]
+pub struct RangePush {
+    /// Items in this dispatch; invocation `i` handles item `first + i`.
+    pub n: u32,
+    pub first: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+}
+
+/// Push constants of the per-sample forward pass.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[repr(C)]
+pub struct SamplePush {
+    /// Sample records in this dispatch; invocation `i` handles record `first + i`.
+    pub n: u32,
+    pub first: u32,
+    /// Stratified jitter seed.
+    pub seed: u32,
+    /// 1: jittered samples (training), 0: bin centres (rendering).
+    pub jitter: u32,
+}
+
+/// Push constants of the ray composite-and-loss pass: the
+/// [`crate::step::LossConfig`] of the step plus the item range.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[repr(C)]
+pub struct TrainPush {
+    /// Rays in this dispatch; invocation `i` handles ray `first + i` (the ray's id for the
+    /// stratified jitter).
+    pub n: u32,
+    pub first: u32,
+    pub seed: u32,
+    /// `LossConfig::color_to_geometry` as 0 / 1.
+    pub color_to_geometry: u32,
+    pub lambda_color: f32,
+    pub lambda_depth: f32,
+    pub ray_scale: f32,
+    pub _pad: u32,
+}
+
+/// Push constants of the Adam passes: the [`crate::adam::AdamStep`] scalars plus the item
+/// range.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[repr(C)]
+pub struct AdamPush {
+    /// Parameters in this dispatch; invocation `i` updates parameter `first + i`.
+    pub n: u32,
+    pub first: u32,
+    pub lr: f32,
+    pub beta1: f32,
+    pub beta2: f32,
+    pub eps: f32,
+    pub bias_correction1: f32,
+    pub bias_correction2: f32,
+}
+
+/// Push constants of the loss check: the item range and where a record's loss fields are.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[repr(C)]
+pub struct LossCheckPush {
+    /// Records in this dispatch; invocation `i` checks record `first + i`.
+    pub n: u32,
+    pub first: u32,
+    /// Floats per record ([`RESULT_FLOATS`] or [`PIXEL_RESULT_FLOATS`]).
+    pub stride: u32,
+    /// The two loss fields' offsets in a record (the same twice for a single loss).
+    pub loss_a: u32,
+    pub loss_b: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+    pub _pad2: u32,
+}
+
+/// Largest push-constant block, in `u32` words (Vulkan guarantees 128 bytes).
+pub const MAX_PUSH_WORDS: usize = 8;
+
+/// A push-constant block as the words the host pushes (unused trailing words 0; the first
+/// `size_of::<Self>()` bytes are pushed).
+pub trait PushWords: Copy {
+    fn words(&self) -> [u32; MAX_PUSH_WORDS];
+}
+
+impl PushWords for KernelPush {
+    fn words(&self) -> [u32; MAX_PUSH_WORDS] {
+        [self.n, self.arg, 0, 0, 0, 0, 0, 0]
+    }
+}
+
+impl PushWords for RangePush {
+    fn words(&self) -> [u32; MAX_PUSH_WORDS] {
+        [self.n, self.first, 0, 0, 0, 0, 0, 0]
+    }
+}
+
+impl PushWords for SamplePush {
+    fn words(&self) -> [u32; MAX_PUSH_WORDS] {
+        [self.n, self.first, self.seed, self.jitter, 0, 0, 0, 0]
+    }
+}
+
+impl PushWords for TrainPush {
+    fn words(&self) -> [u32; MAX_PUSH_WORDS] {
+        [
+            self.n,
+            self.first,
+            self.seed,
+            self.color_to_geometry,
+            self.lambda_color.to_bits(),
+            self.lambda_depth.to_bits(),
+            self.ray_scale.to_bits(),
+            0,
+        ]
+    }
+}
+
+impl PushWords for AdamPush {
+    fn words(&self) -> [u32; MAX_PUSH_WORDS] {
+        [
+            self.n,
+            self.first,
+            self.lr.to_bits(),
+            self.beta1.to_bits(),
+            self.beta2.to_bits(),
+            self.eps.to_bits(),
+            self.bias_correction1.to_bits(),
+            self.bias_correction2.to_bits(),
+        ]
+    }
+}
+
+impl PushWords for LossCheckPush {
+    fn words(&self) -> [u32; MAX_PUSH_WORDS] {
+        [
+            self.n,
+            self.first,
+            self.stride,
+            self.loss_a,
+            self.loss_b,
+            0,
+            0,
+            0,
+        ]
+    }
+}
+
+const _: () = {
+    assert!(size_of::<KernelPush>() == 16);
+    assert!(size_of::<RangePush>() == 16);
+    assert!(size_of::<SamplePush>() == 16);
+    assert!(size_of::<TrainPush>() == 32);
+    assert!(size_of::<AdamPush>() == 32);
+    assert!(size_of::<LossCheckPush>() == 32);
+    assert!(32 == 4 * MAX_PUSH_WORDS);
+};
+
+/// One compute entry point: its name in the module, the storage buffers of its descriptor set
+/// 0 (bindings `0..bindings`) and the bytes of its push-constant block.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct EntryPoint {
+    pub name: &'static str,
+    pub bindings: u32,
+    pub push_size: u32,
+}
+
+impl EntryPoint {
+    const fn new(name: &'static str, bindings: u32, push_size: usize) -> Self {
+        Self {
+            name,
+            bindings,
+            push_size: push_size as u32,
+        }
+    }
+}
+
+/// Every entry point of the shader module (bindings are documented at each entry point in
+/// `shaders/src/lib.rs`).
+pub mod entry {
+    use super::*;
+
+    pub const PROBE: EntryPoint = EntryPoint::new("probe_cs", 2, size_of::<KernelPush>());
+    pub const FIXED_ACCUMULATE: EntryPoint =
+        EntryPoint::new("fixed_accumulate_cs", 2, size_of::<KernelPush>());
+    pub const MLP_FORWARD: EntryPoint =
+        EntryPoint::new("mlp_forward_cs", 4, size_of::<KernelPush>());
+    pub const GRID_FORWARD: EntryPoint =
+        EntryPoint::new("grid_forward_cs", 4, size_of::<KernelPush>());
+    /// Model words, [`PARAM_BINDINGS`], rays, sample records.
+    pub const SAMPLE_FORWARD: EntryPoint = EntryPoint::new(
+        "sample_forward_cs",
+        1 + PARAM_BINDINGS as u32 + 2,
+        size_of::<SamplePush>(),
+    );
+    pub const RAY_TRAIN: EntryPoint = EntryPoint::new("ray_train_cs", 6, size_of::<TrainPush>());
+    /// Model words, [`PARAM_BINDINGS`], their gradients, rays, sample records.
+    pub const SAMPLE_BACKWARD: EntryPoint = EntryPoint::new(
+        "sample_backward_cs",
+        1 + 2 * PARAM_BINDINGS as u32 + 2,
+        size_of::<SamplePush>(),
+    );
+    pub const RAY_RENDER: EntryPoint = EntryPoint::new("ray_render_cs", 5, size_of::<RangePush>());
+    pub const PIXEL_RAYS: EntryPoint = EntryPoint::new("pixel_rays_cs", 4, size_of::<RangePush>());
+    pub const PIXEL_TRAIN: EntryPoint =
+        EntryPoint::new("pixel_train_cs", 9, size_of::<RangePush>());
+    /// Parameters, both moments, gradient, status word.
+    pub const ADAM: EntryPoint = EntryPoint::new("adam_cs", 5, size_of::<AdamPush>());
+    pub const LOSS_CHECK: EntryPoint =
+        EntryPoint::new("loss_check_cs", 2, size_of::<LossCheckPush>());
+    pub const ADAM_CHECK: EntryPoint = EntryPoint::new("adam_check_cs", 5, size_of::<AdamPush>());
+    /// Model words, [`PARAM_BINDINGS`], points, output.
+    pub const SDF_QUERY: EntryPoint = EntryPoint::new(
+        "sdf_query_cs",
+        1 + PARAM_BINDINGS as u32 + 2,
+        size_of::<RangePush>(),
+    );
+    pub const COLOR_QUERY: EntryPoint = EntryPoint::new(
+        "color_query_cs",
+        1 + PARAM_BINDINGS as u32 + 2,
+        size_of::<RangePush>(),
+    );
+
+    /// All of them.
+    pub const ALL: [EntryPoint; 15] = [
+        PROBE,
+        FIXED_ACCUMULATE,
+        MLP_FORWARD,
+        GRID_FORWARD,
+        SAMPLE_FORWARD,
+        RAY_TRAIN,
+        SAMPLE_BACKWARD,
+        RAY_RENDER,
+        PIXEL_RAYS,
+        PIXEL_TRAIN,
+        ADAM,
+        LOSS_CHECK,
+        ADAM_CHECK,
+        SDF_QUERY,
+        COLOR_QUERY,
+    ];
+}
