@@ -318,6 +318,9 @@ pub fn read_ply_from<R: Read>(r: R) -> Result<Mesh> {
         }
         match el.name.as_str() {
             "vertex" => {
+                if seen_vertex {
+                    bail!("more than one 'vertex' element");
+                }
                 seen_vertex = true;
                 read_vertices(el, &mut body, &mut mesh)?;
             }
