@@ -1,0 +1,437 @@
+//! The mapping loop: frames pushed one at a time into the core's mapper, evaluation after
+//! every update, checkpoints, and the errors of a run that fails midway.
+
+#[allow(unused_imports)]
+use super::*;
+
+/// What [`run_map`] computed before choosing the backend.
+pub(super) struct RunContext {
+    pub(super) t_start: Instant,
+    pub(super) k: Intrinsics,
+    pub(super) aabb: Aabb,
+    pub(super) box_src: &'static str,
+    pub(super) reason: String,
+}
+
+/// The mapping loop, evaluation and outputs of [`run_map`] on one backend.
+pub(super) fn map_with<B: MapBackend>(
+    opts: &MapOptions,
+    ds: &dyn crate::dataset::Dataset,
+    ctx: RunContext,
+    backend: B,
+) -> anyhow::Result<MapSummary>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let RunContext {
+        t_start,
+        k,
+        aabb,
+        box_src,
+        reason,
+    } = ctx;
+    let cfg = &opts.config;
+    let n = ds.len();
+    let backend_name = format!("{} ({reason})", backend.name());
+    let threads = backend.threads();
+    let params = backend.layout().param_count();
+    let mcfg = cfg.mapper_config()?;
+    let mut px = vec![PixelSample::default(); mcfg.pixels as usize];
+    let mut res = vec![PixelResult::default(); mcfg.pixels as usize];
+    let resumed = match &opts.resume {
+        Some(path) => Some(checkpoint::load(
+            path,
+            cfg,
+            &opts.dataset,
+            n,
+            (k.width, k.height),
+            |m| (0..m).map(|i| Ok(ds.frame(i)?.pose)).collect(),
+        )?),
+        None => None,
+    };
+    let mut mapper = match &resumed {
+        None => Mapper::new(backend, mcfg, k, &mut px, &mut res)
+            .map_err(|e| anyhow::anyhow!("mapper: {e}"))?,
+        Some((run, data)) => {
+            let mut backend = backend;
+            backend.import(data)?;
+            for (g, lr) in Group::ALL.into_iter().zip(run.lrs()?) {
+                backend.set_adam_lr(g, lr)?;
+            }
+            let state = run.mapper_state()?;
+            let mut m = Mapper::restore(backend, mcfg, k, &mut px, &mut res, &state)
+                .map_err(|e| anyhow::anyhow!("mapper: {e}"))?;
+            // the images of the frames the mapper holds, back into their slots
+            for e in state.held() {
+                let frame = ds.frame(e.id as usize)?;
+                m.backend_mut()
+                    .upload_frame(e.slot, &pack_image(&frame.rgb))?;
+            }
+            if opts.progress {
+                eprintln!(
+                    "resuming after frame {} of {n} from {}",
+                    run.pushed,
+                    checkpoint::path_of(opts.resume.as_deref().unwrap_or(Path::new("."))).display()
+                );
+            }
+            m
+        }
+    };
+
+    let ek = {
+        let w = ((k.width as f32 * cfg.eval.scale).round() as u32).max(1);
+        let h = ((k.height as f32 * cfg.eval.scale).round() as u32).max(1);
+        k.resized(w, h)
+    };
+    let expected_updates = if n >= mcfg.init_frames as usize {
+        1 + (n - mcfg.init_frames as usize).div_ceil(mcfg.update_every as usize)
+    } else {
+        1
+    };
+    let render_every = (expected_updates / cfg.eval.renders.max(1) as usize).max(1);
+
+    // metrics.csv: the header now, then rewritten whole (atomically) after every update, so a
+    // run killed halfway keeps what it measured.
+    let csv_path = opts.out.join("metrics.csv");
+    let (mut rows, mut mapping_s, mut outside_box, start) = match &resumed {
+        Some((run, _)) => (
+            run.rows.clone(),
+            run.mapping_s,
+            run.outside_box,
+            run.pushed as usize,
+        ),
+        None => (Vec::new(), 0.0f64, 0usize, 0usize),
+    };
+    write_metrics(&csv_path, &rows)?;
+    // Without a terminal (a log file, a service) the progress bar draws nothing: plain lines
+    // every few seconds instead.
+    let plain = opts.progress && !std::io::stderr().is_terminal();
+    let log = std::cell::RefCell::new(PlainLog::new(plain, n));
+    let pb = if opts.progress && !plain {
+        let pb = indicatif::ProgressBar::new(n as u64);
+        pb.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:30}] frame {pos}/{len} {msg}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+        );
+        pb
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let mut last_psnr = rows
+        .iter()
+        .rev()
+        .map(|r| r.psnr)
+        .find(|p| !p.is_nan())
+        .unwrap_or(f64::NAN);
+    let mut last_frame: Option<crate::dataset::Frame> = None;
+
+    let handle = |mapper: &mut Mapper<'_, B>,
+                  report: UpdateReport,
+                  frame: &crate::dataset::Frame,
+                  seconds: f64,
+                  rows: &mut Vec<UpdateMetrics>,
+                  last_psnr: &mut f64|
+     -> anyhow::Result<()> {
+        let u = rows.len();
+        let eval = cfg.eval.every > 0 && u.is_multiple_of(cfg.eval.every as usize);
+        let (mut psnr, mut ssim, mut dl1) = (f64::NAN, f64::NAN, None);
+        if eval {
+            let v = evaluate_view(mapper.backend_mut(), &ek, frame)?;
+            (psnr, ssim, dl1) = (v.psnr, v.ssim, v.depth_l1_cm);
+            if u.is_multiple_of(render_every) {
+                let p = opts
+                    .out
+                    .join("renders")
+                    .join(format!("frame{:06}.png", frame.index));
+                write_render(&p, &v.input, &v.out, v.gt_depth.as_deref())?;
+            }
+            *last_psnr = psnr;
+        }
+        rows.push(UpdateMetrics {
+            frame: frame.index,
+            kind: match report.kind {
+                UpdateKind::Init => "init".into(),
+                UpdateKind::Online => "online".into(),
+            },
+            psnr,
+            ssim,
+            depth_l1_cm: dl1,
+            loss_first: report.first.loss,
+            loss: report.last.loss,
+            color_loss: report.last.color_loss,
+            warp_loss: report.last.warp_loss,
+            warp_valid: report.last.warp_valid,
+            open_rays: report.last.open_rays,
+            window_keyframes: report.window_keyframes,
+            iters: report.iters,
+            seconds,
+        });
+        write_metrics(&csv_path, rows)?;
+        if let Some(r) = rows.last() {
+            log.borrow_mut().update(r);
+        }
+        Ok(())
+    };
+
+    // Poses of the frames pushed so far (the mesh level is measured over them after mapping).
+    let mut poses: Vec<Pose> = Vec::with_capacity(n);
+    for i in 0..start {
+        poses.push(ds.frame(i)?.pose);
+    }
+    pb.set_position(start as u64);
+    // Frames pushed at the last checkpoint this run wrote (named when the backend fails).
+    let mut last_checkpoint: Option<usize> = None;
+    let pushed = opts.stop_after.map_or(n, |s| s.min(n));
+    for i in start..pushed {
+        let frame = ds.frame(i)?;
+        poses.push(frame.pose);
+        let o = frame.pose.origin();
+        if (0..3).any(|a| !(o[a] >= aabb.min[a] && o[a] <= aabb.max[a])) {
+            if outside_box == 0 {
+                pb.suspend(|| {
+                    eprintln!(
+                        "warning: frame {}: the camera ({:.2}, {:.2}, {:.2}) is outside the scene \
+                         box ({box_src}) [{:.2}, {:.2}, {:.2}]..[{:.2}, {:.2}, {:.2}]; the map cannot \
+                         hold what lies beyond the box: give a box that contains the path \
+                         (scene.min, scene.max)",
+                        frame.index,
+                        o[0],
+                        o[1],
+                        o[2],
+                        aabb.min[0],
+                        aabb.min[1],
+                        aabb.min[2],
+                        aabb.max[0],
+                        aabb.max[1],
+                        aabb.max[2]
+                    )
+                });
+            }
+            outside_box += 1;
+        }
+        let rgba = pack_image(&frame.rgb);
+        let t0 = Instant::now();
+        let lp = last_psnr;
+        let mut observe = |info: &IterInfo| {
+            pb.set_message(format!(
+                "{} it {}/{} loss {:.4} (c {:.4} w {:.4}) PSNR {:.2}",
+                kind_label(info.kind),
+                info.iter + 1,
+                info.iters,
+                info.loss,
+                info.color_loss,
+                info.warp_loss,
+                lp
+            ));
+            if info.iter.is_multiple_of(10) {
+                pb.tick();
+            }
+            if info.rejected {
+                pb.suspend(|| {
+                    eprintln!(
+                        "warning: frame {}: {} iteration {}/{} was not finite (loss {}); \
+                         skipped, parameters kept",
+                        frame.index,
+                        kind_label(info.kind),
+                        info.iter + 1,
+                        info.iters,
+                        info.loss
+                    )
+                });
+            }
+            log.borrow_mut().iteration(i, info);
+        };
+        let rep = mapper
+            .push_frame_observed(&rgba, frame.pose, &mut observe)
+            .map_err(|e| {
+                let at = format!("frame {}", frame.index);
+                mid_run_error(e, &at, &backend_name, last_checkpoint, opts)
+            })?;
+        let dt = t0.elapsed().as_secs_f64();
+        if let Some(r) = rep {
+            mapping_s += dt;
+            handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
+        }
+        pb.inc(1);
+        last_frame = Some(frame);
+        if opts.checkpoint_every > 0 && (i + 1).is_multiple_of(opts.checkpoint_every) {
+            let id = DatasetId::new(&opts.dataset, n, k.width, k.height, &poses);
+            let lrs = Group::ALL.map(|g| mapper.backend().adam_lr(g));
+            let run = RunState::new(cfg, id, &mapper.state(), lrs, &rows, outside_box, mapping_s);
+            let data = mapper.backend_mut().export()?;
+            checkpoint::save(&opts.out, cfg, &data, &run)?;
+            last_checkpoint = Some(i + 1);
+        }
+    }
+    if let Some(frame) = last_frame.filter(|_| pushed == n) {
+        let t0 = Instant::now();
+        if let Some(r) = mapper.flush(&mut |_: &IterInfo| {}).map_err(|e| {
+            mid_run_error(e, "the final update", &backend_name, last_checkpoint, opts)
+        })? {
+            let dt = t0.elapsed().as_secs_f64();
+            mapping_s += dt;
+            handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
+        }
+    }
+    pb.finish_and_clear();
+    let iterations = mapper.iterations();
+    let (rejected_steps, lr_reductions) = (mapper.rejected_steps(), mapper.lr_reductions());
+    if lr_reductions > 0 {
+        eprintln!(
+            "warning: {rejected_steps} mapping steps were not finite; the learning rates were \
+             lowered {lr_reductions} times (mapper.rejected_lr_after / rejected_lr_factor)"
+        );
+    }
+
+    log.borrow_mut().done(rows.len(), mapping_s);
+
+    let mut backend = mapper.into_backend();
+    let fin = final_map_eval(&mut backend, ds, &ek, cfg.eval.final_every as usize)?;
+    if opts.progress {
+        eprintln!(
+            "final map over {} frames of the sequence: PSNR {} dB, SSIM {}, Depth L1 {} cm",
+            fin.frames,
+            fmt_opt(fin.psnr, 2),
+            fmt_opt(fin.ssim, 3),
+            fmt_opt(fin.depth_l1_cm, 2)
+        );
+    }
+    // mesh
+    let beta = {
+        let mut b = [0.0f32; 1];
+        backend.read_params(Group::Beta, &mut b)?;
+        b[0]
+    };
+    let mesh_level = match cfg.eval.mesh_level {
+        Some(l) => l,
+        None => {
+            let lk = ek.resized((ek.width / 2).max(1), (ek.height / 2).max(1));
+            rendered_surface_level(&mut backend, &lk, &poses, 8)?
+                .unwrap_or_else(|| cfg.surface_level(beta))
+        }
+    };
+    // The observed scene: the mapped views' rendered depth bounds the extraction region
+    // (mesh_full.ply) and culls it to what some view saw (mesh.ply).
+    let views = observed_views(&mut backend, &k, &poses, OBSERVED_VIEWS)?;
+    let region = observed_region(&views, aabb, 2.0 * cfg.eval.mesh_resolution).unwrap_or(aabb);
+    let full = map_mesh(&mut backend, region, cfg.eval.mesh_resolution, mesh_level)?;
+    full.write_ply(&opts.out.join("mesh_full.ply"))?;
+    let mesh = crate::eval::cull_mesh(
+        &full,
+        views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
+        Some(cfg.eval.observed_margin),
+    );
+    if opts.progress {
+        eprintln!(
+            "mesh: {} faces over the observed region, {} seen by the mapped views (mesh.ply; \
+             mesh_full.ply keeps all)",
+            full.faces.len(),
+            mesh.faces.len()
+        );
+    }
+    let mesh_path = opts.out.join("mesh.ply");
+    mesh.write_ply(&mesh_path)?;
+    let has_gt = opts.dataset.join("gt_mesh.ply").is_file() || ds.has_depth();
+    let (mesh_metrics, mesh_gt, mesh_err) = if has_gt && !mesh.faces.is_empty() {
+        use crate::eval::{Culling, EvalOptions};
+        let gt_mesh = opts.dataset.join("gt_mesh.ply").is_file();
+        let culling = match cfg.eval.cull.as_str() {
+            "none" => Culling::None,
+            "frustum" => Culling::Frustum,
+            "occlusion" => Culling::FrustumOcclusion,
+            _ if gt_mesh => Culling::None,
+            _ => Culling::Frustum,
+        };
+        let eo = EvalOptions {
+            n_samples: cfg.eval.mesh_samples,
+            culling,
+            dataset: cfg.dataset.clone(),
+            ..EvalOptions::default()
+        };
+        match crate::eval::eval_report(&mesh_path, &opts.dataset, &eo) {
+            Ok(r) => (Some(r.metrics), Some(r.gt_kind), None),
+            Err(e) => (None, None, Some(format!("{e:#}"))),
+        }
+    } else if has_gt {
+        (None, None, Some("empty reconstruction".to_string()))
+    } else {
+        (None, None, None)
+    };
+
+    let data = backend.export()?;
+    save_map(&opts.out.join("map.safetensors"), cfg, &data)?;
+
+    let summary = MapSummary {
+        dataset: opts.dataset.clone(),
+        frames: n,
+        width: k.width,
+        height: k.height,
+        backend: backend_name,
+        threads,
+        scene_box: [aabb.min, aabb.max],
+        scene_box_source: box_src.to_string(),
+        updates: rows.len(),
+        iterations,
+        rejected_steps,
+        lr_reductions,
+        mean_psnr: mean(rows.iter().map(|r| r.psnr)),
+        mean_ssim: mean(rows.iter().map(|r| r.ssim)),
+        mean_depth_l1_cm: mean(rows.iter().filter_map(|r| r.depth_l1_cm)),
+        frames_outside_box: outside_box,
+        final_frames: fin.frames,
+        final_psnr: fin.psnr,
+        final_ssim: fin.ssim,
+        final_depth_l1_cm: fin.depth_l1_cm,
+        final_per_frame: fin.per_frame,
+        mesh: mesh_metrics,
+        mesh_ground_truth: mesh_gt,
+        mesh_error: mesh_err,
+        mesh_faces: mesh.faces.len(),
+        mesh_full_faces: full.faces.len(),
+        mesh_level,
+        beta,
+        seconds_total: t_start.elapsed().as_secs_f64(),
+        seconds_mapping: mapping_s,
+        seconds_per_iteration: mapping_s / iterations.max(1) as f64,
+        seconds_per_frame: mapping_s / n.max(1) as f64,
+        parameters: params,
+        config: cfg.clone(),
+    };
+    let sp = opts.out.join("summary.json");
+    crate::atomic::write_bytes_atomic(&sp, serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    Ok(summary)
+}
+
+/// A mapping failure mid-run (`at`: the frame or the final update): the backend's own error
+/// stays in the chain (a GPU failure exits with code 3), with the backend named and the way
+/// to go on. The mapper's state inside a failed update is partial, so no checkpoint is
+/// written then: the last periodic one (`--checkpoint-every`) is what a run resumes from.
+pub(super) fn mid_run_error<E: std::error::Error + Send + Sync + 'static>(
+    e: MapperError<E>,
+    at: &str,
+    backend: &str,
+    last_checkpoint: Option<usize>,
+    opts: &MapOptions,
+) -> anyhow::Error {
+    let hint = match last_checkpoint {
+        Some(f) => format!(
+            "the last checkpoint (after {f} frames) is {}: continue with `--resume {}` (also \
+             on another backend, e.g. `--backend cpu`: the same bits)",
+            opts.out.join(checkpoint::FILE).display(),
+            opts.out.display()
+        ),
+        None if opts.checkpoint_every == 0 => {
+            "no checkpoint was kept: `--checkpoint-every N` keeps one to resume from".into()
+        }
+        None => "no checkpoint was written yet".into(),
+    };
+    match e {
+        MapperError::Backend(e) => {
+            anyhow::Error::new(e).context(format!("{at}: the {backend} backend failed; {hint}"))
+        }
+        MapperError::Core(e) => anyhow::anyhow!("{at}: mapper: {e}"),
+    }
+}
