@@ -3,8 +3,8 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use clap::{Parser, Subcommand};
-use himap::dump::{dump_step, DumpOptions};
+use clap::{Args, Parser, Subcommand};
+use himap::dump::DumpOptions;
 
 #[derive(Parser)]
 #[command(
@@ -21,221 +21,248 @@ struct Cli {
 enum Command {
     /// Map a posed RGB sequence (Replica or TUM layout) and write metrics.csv, summary.json,
     /// mesh.ply, renders/ and map.safetensors into --out.
-    Map {
-        /// Dataset folder.
-        dataset: PathBuf,
-        #[arg(long)]
-        out: PathBuf,
-        /// Configuration file (TOML; missing fields take the preset's values).
-        #[arg(long, conflicts_with = "preset")]
-        config: Option<PathBuf>,
-        /// Preset: small (2-core CPU), paper, or demo (`himap demo`'s: small with the 20-iteration schedule without early termination).
-        #[arg(long, default_value = "small")]
-        preset: String,
-        /// Backend: cpu (multi-threaded), vulkan, or auto (a Vulkan GPU when one is usable,
-        /// else the CPU; it says which it chose).
-        #[arg(long, default_value = "auto")]
-        backend: String,
-        /// Frame selection start:end:stride over the source frames (e.g. 0:100:2).
-        #[arg(long)]
-        frames: Option<String>,
-        /// Resize the images to WxH (e.g. 320x240).
-        #[arg(long)]
-        resize: Option<String>,
-        /// Worker threads (0 = all cores).
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-        /// Skip the preflight (every frame's files and image headers are checked before the
-        /// first iteration, so a broken frame fails in the first second, not at its turn).
-        #[arg(long)]
-        no_preflight: bool,
-        /// Write OUT/checkpoint.safetensors (map, Adam state, mapper state, metrics so far)
-        /// after every N pushed frames, atomically (0 = never).
-        #[arg(long, value_name = "N", default_value_t = 0)]
-        checkpoint_every: usize,
-        /// Continue an interrupted run from its checkpoint (the file, or the folder holding
-        /// checkpoint.safetensors) with the same dataset, frames and configuration; the
-        /// result equals the uninterrupted run bit for bit.
-        #[arg(long, value_name = "DIR")]
-        resume: Option<PathBuf>,
-        /// Print the effective configuration (TOML) and exit.
-        #[arg(long)]
-        print_config: bool,
-    },
+    Map(MapArgs),
     /// Synthesise a small room, map it with the demo preset (`small` with 20 online iterations and no early termination), evaluate and print a table.
-    Demo {
-        /// Keep the room and the outputs here (default: a temporary directory).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Frames of the synthetic sequence.
-        #[arg(long, default_value_t = 60)]
-        frames: usize,
-        /// Image size WxH.
-        #[arg(long, default_value = "128x96")]
-        size: String,
-        /// Configuration file laid over the demo preset (default: the demo preset).
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// Worker threads (0 = all cores).
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-        /// Backend: cpu, vulkan or auto.
-        #[arg(long, default_value = "auto")]
-        backend: String,
-    },
+    Demo(DemoArgs),
     /// List the Vulkan devices with their limits and the features the backend needs.
     Devices,
     /// Throughput of each backend present: forward and forward+backward samples/s, ms per
     /// training step at the small and the paper configuration, memory used.
-    Bench {
-        /// Rays per step.
-        #[arg(long, default_value_t = 2048)]
-        rays: usize,
-        /// Timed steps per measurement (after one warm-up step).
-        #[arg(long, default_value_t = 3)]
-        steps: usize,
-        /// Backends to measure: cpu, vulkan or all.
-        #[arg(long, default_value = "all")]
-        backend: String,
-        /// Configurations: small, paper, step (the paper's model over a 4 m cube, 64 samples
-        /// per ray: the step `scripts/bench_step_torch.py` times) or all.
-        #[arg(long, default_value = "all")]
-        config: String,
-        /// CPU worker threads (0 = all cores).
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-    },
+    Bench(BenchArgs),
     /// Extract the mesh of a saved map (map.safetensors of `himap map`).
-    Mesh {
-        /// The map file.
-        #[arg(long)]
-        map: PathBuf,
-        /// Output PLY.
-        #[arg(long)]
-        out: PathBuf,
-        /// Marching-cubes spacing in metres (default: the map's eval.mesh_resolution).
-        #[arg(long)]
-        resolution: Option<f32>,
-        /// SDF level of the surface (default: the renderer's surface level for the map's beta).
-        #[arg(long, allow_hyphen_values = true)]
-        level: Option<f32>,
-        /// Worker threads (0 = all cores).
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-    },
+    Mesh(MeshArgs),
     /// Train a small field on a built-in analytic target and print the loss going down.
-    TrainDemo {
-        /// Training steps.
-        #[arg(long, default_value_t = 300)]
-        steps: usize,
-        /// Rays per step.
-        #[arg(long, default_value_t = 512)]
-        rays: usize,
-        /// Worker threads (0 = all cores).
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-    },
+    TrainDemo(TrainDemoArgs),
     /// Write a synthetic Replica-layout sequence (colour, exact depth, poses, intrinsics) plus
     /// its ground-truth mesh `gt_mesh.ply`: a procedural room orbited from its middle, or a
     /// house of three rooms with doors walked through from one end to the other (at least
     /// 25 m; no scene box is written, so mapping it uses the default box policy).
-    Synth {
-        #[arg(long)]
-        out: PathBuf,
-        /// room or house.
-        #[arg(long, default_value = "room")]
-        scene: String,
-        /// Frames (default: 60 for the room, 360 for the house).
-        #[arg(long)]
-        frames: Option<usize>,
-        #[arg(long, default_value_t = 160)]
-        width: u32,
-        #[arg(long, default_value_t = 120)]
-        height: u32,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-    },
+    Synth(SynthArgs),
     /// Mesh metrics as the paper reports them: Accuracy and Completion (cm), Completion ratio
     /// (% of ground-truth points within 5 cm), from area-weighted surface samples.
-    Eval {
-        /// Reconstructed mesh (PLY).
-        #[arg(long)]
-        mesh: PathBuf,
-        /// Ground truth: a mesh PLY, or a dataset directory (its gt_mesh.ply, else its
-        /// back-projected ground-truth depth).
-        #[arg(long)]
-        gt: PathBuf,
-        /// Also write the report as JSON.
-        #[arg(long)]
-        json: Option<PathBuf>,
-        /// Surface samples per mesh.
-        #[arg(long, default_value_t = 200_000)]
-        samples: usize,
-        /// Culling of the reconstruction by the dataset's cameras: none, frustum, occlusion.
-        #[arg(long, default_value = "none")]
-        cull: String,
-        /// A configuration whose [dataset] section says how to read the ground-truth dataset
-        /// (its cameras; the one the map was made with).
-        #[arg(long)]
-        config: Option<PathBuf>,
-    },
+    Eval(EvalArgs),
     /// Diagnostic (reads ground truth): does the warping loss find the true depth? Sweeps the
     /// loss along the ray of sampled pixels with ground-truth depth (0.5x..2x) in windows of
     /// consecutive frames and prints how often its minimum is at the truth; with --map, also
     /// whether the truth scores lower than the map's rendered depth.
-    WarpCheck {
-        /// Dataset folder (with depth).
-        dataset: PathBuf,
-        /// Configuration (warp settings); ignored with --map (the map's own is used).
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// A map.safetensors of `himap map` on this dataset.
-        #[arg(long)]
-        map: Option<PathBuf>,
-        #[arg(long)]
-        frames: Option<String>,
-        #[arg(long)]
-        resize: Option<String>,
-        /// Frames per window.
-        #[arg(long, default_value_t = 15)]
-        window: usize,
-        /// Frame step inside a window.
-        #[arg(long, default_value_t = 1)]
-        step: usize,
-        /// Windows spread over the sequence.
-        #[arg(long, default_value_t = 8)]
-        anchors: usize,
-        /// Pixels per window.
-        #[arg(long, default_value_t = 300)]
-        pixels: usize,
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// Blur passes (5-tap binomial, sigma 1 px each) over the images first.
-        #[arg(long, default_value_t = 0)]
-        blur: u32,
-        /// Warp with the focal lengths scaled by this (tests whether the colour camera's
-        /// intrinsics differ from the dataset's).
-        #[arg(long, default_value_t = 1.0)]
-        focal_scale: f32,
-    },
+    WarpCheck(WarpCheckArgs),
     /// Run one training step of a small model on random rays and write every input, output
     /// and gradient to a safetensors file (see the README for the tensor names and formulas).
-    DumpStep {
-        #[arg(long)]
-        out: PathBuf,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// Number of rays.
-        #[arg(long, default_value_t = 64)]
-        rays: usize,
-        /// Rendering: sdf-density (Hi-Map), sdf-direct or occupancy.
-        #[arg(long, default_value = "sdf-density")]
-        render: String,
-    },
+    DumpStep(DumpStepArgs),
+}
+
+#[derive(Args)]
+struct MapArgs {
+    /// Dataset folder.
+    dataset: PathBuf,
+    #[arg(long)]
+    out: PathBuf,
+    /// Configuration file (TOML; missing fields take the preset's values).
+    #[arg(long, conflicts_with = "preset")]
+    config: Option<PathBuf>,
+    /// Preset: small (2-core CPU), paper, or demo (`himap demo`'s: small with the 20-iteration schedule without early termination).
+    #[arg(long, default_value = "small")]
+    preset: String,
+    /// Backend: cpu (multi-threaded), vulkan, or auto (a Vulkan GPU when one is usable,
+    /// else the CPU; it says which it chose).
+    #[arg(long, default_value = "auto")]
+    backend: String,
+    /// Frame selection start:end:stride over the source frames (e.g. 0:100:2).
+    #[arg(long)]
+    frames: Option<String>,
+    /// Resize the images to WxH (e.g. 320x240).
+    #[arg(long)]
+    resize: Option<String>,
+    /// Worker threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Skip the preflight (every frame's files and image headers are checked before the
+    /// first iteration, so a broken frame fails in the first second, not at its turn).
+    #[arg(long)]
+    no_preflight: bool,
+    /// Write OUT/checkpoint.safetensors (map, Adam state, mapper state, metrics so far)
+    /// after every N pushed frames, atomically (0 = never).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    checkpoint_every: usize,
+    /// Continue an interrupted run from its checkpoint (the file, or the folder holding
+    /// checkpoint.safetensors) with the same dataset, frames and configuration; the
+    /// result equals the uninterrupted run bit for bit.
+    #[arg(long, value_name = "DIR")]
+    resume: Option<PathBuf>,
+    /// Print the effective configuration (TOML) and exit.
+    #[arg(long)]
+    print_config: bool,
+}
+
+#[derive(Args)]
+struct DemoArgs {
+    /// Keep the room and the outputs here (default: a temporary directory).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Frames of the synthetic sequence.
+    #[arg(long, default_value_t = 60)]
+    frames: usize,
+    /// Image size WxH.
+    #[arg(long, default_value = "128x96")]
+    size: String,
+    /// Configuration file laid over the demo preset (default: the demo preset).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Worker threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Backend: cpu, vulkan or auto.
+    #[arg(long, default_value = "auto")]
+    backend: String,
+}
+
+#[derive(Args)]
+struct BenchArgs {
+    /// Rays per step.
+    #[arg(long, default_value_t = 2048)]
+    rays: usize,
+    /// Timed steps per measurement (after one warm-up step).
+    #[arg(long, default_value_t = 3)]
+    steps: usize,
+    /// Backends to measure: cpu, vulkan or all.
+    #[arg(long, default_value = "all")]
+    backend: String,
+    /// Configurations: small, paper, step (the paper's model over a 4 m cube, 64 samples
+    /// per ray: the step `scripts/bench_step_torch.py` times) or all.
+    #[arg(long, default_value = "all")]
+    config: String,
+    /// CPU worker threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+}
+
+#[derive(Args)]
+struct MeshArgs {
+    /// The map file.
+    #[arg(long)]
+    map: PathBuf,
+    /// Output PLY.
+    #[arg(long)]
+    out: PathBuf,
+    /// Marching-cubes spacing in metres (default: the map's eval.mesh_resolution).
+    #[arg(long)]
+    resolution: Option<f32>,
+    /// SDF level of the surface (default: the renderer's surface level for the map's beta).
+    #[arg(long, allow_hyphen_values = true)]
+    level: Option<f32>,
+    /// Worker threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+}
+
+#[derive(Args)]
+struct TrainDemoArgs {
+    /// Training steps.
+    #[arg(long, default_value_t = 300)]
+    steps: usize,
+    /// Rays per step.
+    #[arg(long, default_value_t = 512)]
+    rays: usize,
+    /// Worker threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+#[derive(Args)]
+struct SynthArgs {
+    #[arg(long)]
+    out: PathBuf,
+    /// room or house.
+    #[arg(long, default_value = "room")]
+    scene: String,
+    /// Frames (default: 60 for the room, 360 for the house).
+    #[arg(long)]
+    frames: Option<usize>,
+    #[arg(long, default_value_t = 160)]
+    width: u32,
+    #[arg(long, default_value_t = 120)]
+    height: u32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+#[derive(Args)]
+struct EvalArgs {
+    /// Reconstructed mesh (PLY).
+    #[arg(long)]
+    mesh: PathBuf,
+    /// Ground truth: a mesh PLY, or a dataset directory (its gt_mesh.ply, else its
+    /// back-projected ground-truth depth).
+    #[arg(long)]
+    gt: PathBuf,
+    /// Also write the report as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Surface samples per mesh.
+    #[arg(long, default_value_t = 200_000)]
+    samples: usize,
+    /// Culling of the reconstruction by the dataset's cameras: none, frustum, occlusion.
+    #[arg(long, default_value = "none")]
+    cull: String,
+    /// A configuration whose [dataset] section says how to read the ground-truth dataset
+    /// (its cameras; the one the map was made with).
+    #[arg(long)]
+    config: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct WarpCheckArgs {
+    /// Dataset folder (with depth).
+    dataset: PathBuf,
+    /// Configuration (warp settings); ignored with --map (the map's own is used).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// A map.safetensors of `himap map` on this dataset.
+    #[arg(long)]
+    map: Option<PathBuf>,
+    #[arg(long)]
+    frames: Option<String>,
+    #[arg(long)]
+    resize: Option<String>,
+    /// Frames per window.
+    #[arg(long, default_value_t = 15)]
+    window: usize,
+    /// Frame step inside a window.
+    #[arg(long, default_value_t = 1)]
+    step: usize,
+    /// Windows spread over the sequence.
+    #[arg(long, default_value_t = 8)]
+    anchors: usize,
+    /// Pixels per window.
+    #[arg(long, default_value_t = 300)]
+    pixels: usize,
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Blur passes (5-tap binomial, sigma 1 px each) over the images first.
+    #[arg(long, default_value_t = 0)]
+    blur: u32,
+    /// Warp with the focal lengths scaled by this (tests whether the colour camera's
+    /// intrinsics differ from the dataset's).
+    #[arg(long, default_value_t = 1.0)]
+    focal_scale: f32,
+}
+
+#[derive(Args)]
+struct DumpStepArgs {
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Number of rays.
+    #[arg(long, default_value_t = 64)]
+    rays: usize,
+    /// Rendering: sdf-density (Hi-Map), sdf-direct or occupancy.
+    #[arg(long, default_value = "sdf-density")]
+    render: String,
 }
 
 fn parse_render(s: &str) -> anyhow::Result<himap_core::render::RenderMode> {
@@ -339,305 +366,343 @@ fn exit_code(e: &anyhow::Error) -> u8 {
 }
 
 fn run() -> anyhow::Result<()> {
-    let cli = Cli::parse();
-    match cli.command {
-        Command::Map {
-            dataset,
-            out,
-            config,
-            preset,
-            backend,
-            frames,
-            resize,
-            threads,
-            print_config,
-            no_preflight,
-            checkpoint_every,
-            resume,
-        } => {
-            let base = himap::config::Config::preset(&preset)?;
-            let cfg = match &config {
-                Some(p) => himap::config::Config::from_file_over(p, &base)?,
-                None => base,
-            };
-            if print_config {
-                print!("{}", cfg.to_toml());
-                return Ok(());
-            }
-            backend.parse::<himap::select::BackendChoice>()?;
-            let (start, end, stride) = match &frames {
-                Some(f) => parse_frames(f)?,
-                None => (0, None, 1),
-            };
-            let resize = resize.as_deref().map(parse_size).transpose()?;
-            let opts = himap::mapper_cli::MapOptions {
-                dataset,
-                out: out.clone(),
-                config: cfg,
-                start,
-                end,
-                stride,
-                resize,
-                threads,
-                backend,
-                progress: true,
-                preflight: !no_preflight,
-                stop_after: None,
-                checkpoint_every,
-                resume,
-            };
-            let s = himap::mapper_cli::run_map(&opts)?;
-            println!("{}", himap::mapper_cli::summary_table(&s));
-            println!("outputs in {}", out.display());
-        }
-        Command::Demo {
-            out,
-            frames,
-            size,
-            config,
-            threads,
-            backend,
-        } => {
-            backend.parse::<himap::select::BackendChoice>()?;
-            let cfg = match &config {
-                Some(p) => {
-                    himap::config::Config::from_file_over(p, &himap::config::Config::demo())?
-                }
-                None => himap::config::Config::demo(),
-            };
-            let size = parse_size(&size)?;
-            println!(
-                "synthesising a {frames}-frame {}x{} room and mapping it with the demo preset \
-                 (small with 20 online iterations and no early termination)",
-                size.0, size.1
-            );
-            let (s, dir) = himap::mapper_cli::run_demo(
-                out.as_deref(),
-                cfg,
-                frames,
-                size,
-                threads,
-                &backend,
-                true,
-            )?;
-            println!("{}", himap::mapper_cli::summary_table(&s));
-            println!("outputs in {}", dir.display());
-        }
-        Command::Devices => {
-            print!("{}", himap_vulkan::describe_devices());
-            let d = himap::select::decide(himap::select::BackendChoice::Auto);
-            println!(
-                "--backend auto would use: {}",
-                if d.vulkan { "vulkan" } else { "cpu" }
-            );
-            println!("  ({})", d.reason);
-        }
-        Command::Bench {
-            rays,
-            steps,
-            backend,
-            config,
-            threads,
-        } => {
-            let opts = himap::bench::BenchOptions {
-                rays,
-                steps,
-                backends: backend,
-                configs: config,
-                threads,
-            };
-            himap::bench::run_bench(&opts, &mut std::io::stdout())?;
-        }
-        Command::Mesh {
-            map,
-            out,
-            resolution,
-            level,
-            threads,
-        } => {
-            let (faces, level) =
-                himap::mapper_cli::mesh_saved_map(&map, &out, resolution, level, threads)?;
-            println!(
-                "wrote {} ({faces} faces, level {level:.4} m)",
-                out.display()
-            );
-        }
-        Command::TrainDemo {
-            steps,
-            rays,
-            threads,
-            seed,
-        } => {
-            let cfg = himap::dump::small_config(himap_core::render::RenderMode::SdfDensity);
-            let layout = himap_core::model::ModelLayout::new(&cfg)?;
-            println!(
-                "training a {}-parameter field on an analytic sphere-in-a-box target: {steps} steps x {rays} rays",
-                layout.param_count()
-            );
-            let start = std::time::Instant::now();
-            let (first, last) = himap::train_demo::run(
-                layout,
-                steps,
-                rays,
-                threads,
-                seed,
-                |step, loss, psnr| println!("step {step:5}  loss {loss:.5}  PSNR {psnr:6.2} dB"),
-                (steps / 10).max(1),
-            )?;
-            println!(
-                "loss {first:.5} -> {last:.5} in {:.1} s",
-                start.elapsed().as_secs_f32()
-            );
-        }
-        Command::Synth {
-            out,
-            scene,
-            frames,
-            width,
-            height,
-            seed,
-        } => match scene.as_str() {
-            "room" => {
-                let opts = himap::synth::SynthOptions {
-                    frames: frames.unwrap_or(60),
-                    width,
-                    height,
-                    seed,
-                };
-                let s = himap::synth::write_synthetic(&out, &opts).with_context(|| {
-                    format!("writing the synthetic sequence to {}", out.display())
-                })?;
-                println!(
-                    "wrote {} frames of {}x{} to {} ({} ground-truth triangles); scene box {:?} .. {:?}",
-                    s.frames,
-                    s.intrinsics.width,
-                    s.intrinsics.height,
-                    s.out.display(),
-                    s.mesh_triangles,
-                    s.scene_box.min,
-                    s.scene_box.max
-                );
-            }
-            "house" => {
-                let opts = himap::synth::house::HouseOptions {
-                    frames: frames.unwrap_or(360),
-                    width,
-                    height,
-                    seed,
-                };
-                let s = himap::synth::house::write_house(&out, &opts)
-                    .with_context(|| format!("writing the house sequence to {}", out.display()))?;
-                let (lo, hi) = s.house.interior();
-                println!(
-                    "wrote {} frames of {}x{} of a {}-room house ({:.1} x {:.1} x {:.1} m, {:.1} m \
-                     walk) to {} ({} ground-truth triangles; no scene box: the default box policy \
-                     applies)",
-                    s.frames,
-                    s.intrinsics.width,
-                    s.intrinsics.height,
-                    s.house.lengths.len(),
-                    hi[0] - lo[0],
-                    hi[1] - lo[1],
-                    hi[2] - lo[2],
-                    s.path_m,
-                    out.display(),
-                    s.mesh_triangles,
-                );
-            }
-            other => anyhow::bail!("unknown synthetic scene '{other}': use room or house"),
-        },
-        Command::Eval {
-            mesh,
-            gt,
-            json,
-            samples,
-            cull,
-            config,
-        } => {
-            use himap::eval::{Culling, EvalOptions};
-            let culling = match cull.as_str() {
-                "none" => Culling::None,
-                "frustum" => Culling::Frustum,
-                "occlusion" => Culling::FrustumOcclusion,
-                other => anyhow::bail!("unknown culling '{other}': use none, frustum or occlusion"),
-            };
-            let dataset = match config {
-                Some(p) => himap::config::Config::from_file(&p)?.dataset,
-                None => Default::default(),
-            };
-            let opts = EvalOptions {
-                n_samples: samples,
-                culling,
-                dataset,
-                ..EvalOptions::default()
-            };
-            let report = himap::eval::run_eval_cli(&mesh, &gt, json.as_deref(), &opts)?;
-            println!("{report}");
-        }
-        Command::WarpCheck {
-            dataset,
-            config,
-            map,
-            frames,
-            resize,
-            window,
-            step,
-            anchors,
-            pixels,
-            threads,
-            seed,
-            blur,
-            focal_scale,
-        } => {
-            let config = match config {
-                Some(p) => himap::config::Config::from_file(&p)?,
-                None => himap::config::Config::small(),
-            };
-            let mut load = himap::dataset::LoadOptions::default();
-            if let Some(f) = frames {
-                let (start, end, stride) = parse_frames(&f)?;
-                load.start = start;
-                load.end = end;
-                load.stride = stride;
-            }
-            load.resize = resize.as_deref().map(parse_size).transpose()?;
-            let opts = himap::warp_check::WarpCheckOptions {
-                dataset,
-                load,
-                config,
-                window,
-                step,
-                anchors,
-                pixels,
-                map,
-                threads,
-                seed,
-                blur,
-                focal_scale,
-            };
-            let (rows, total) = himap::warp_check::run(&opts)?;
-            let with_map = opts.map.is_some();
-            println!("{}", himap::warp_check::WarpStats::header(with_map));
-            for r in &rows {
-                println!("{}", r.row(&r.first.to_string()));
-            }
-            println!("{}", total.row("all"));
-            println!("{}", total.basin_line());
-        }
-        Command::DumpStep {
-            out,
-            seed,
-            rays,
-            render,
-        } => {
-            let opts = DumpOptions {
-                seed,
-                rays,
-                render_mode: parse_render(&render)?,
-            };
-            let loss = dump_step(&out, &opts).with_context(|| "dump-step failed")?;
-            println!("wrote {} (loss {loss})", out.display());
-        }
+    match Cli::parse().command {
+        Command::Map(args) => map(args),
+        Command::Demo(args) => demo(args),
+        Command::Devices => devices(),
+        Command::Bench(args) => bench(args),
+        Command::Mesh(args) => mesh(args),
+        Command::TrainDemo(args) => train_demo(args),
+        Command::Synth(args) => synth(args),
+        Command::Eval(args) => eval(args),
+        Command::WarpCheck(args) => warp_check(args),
+        Command::DumpStep(args) => dump_step(args),
     }
+}
+
+/// `himap map`.
+fn map(args: MapArgs) -> anyhow::Result<()> {
+    let MapArgs {
+        dataset,
+        out,
+        config,
+        preset,
+        backend,
+        frames,
+        resize,
+        threads,
+        print_config,
+        no_preflight,
+        checkpoint_every,
+        resume,
+    } = args;
+    let base = himap::config::Config::preset(&preset)?;
+    let cfg = match &config {
+        Some(p) => himap::config::Config::from_file_over(p, &base)?,
+        None => base,
+    };
+    if print_config {
+        print!("{}", cfg.to_toml());
+        return Ok(());
+    }
+    backend.parse::<himap::select::BackendChoice>()?;
+    let (start, end, stride) = match &frames {
+        Some(f) => parse_frames(f)?,
+        None => (0, None, 1),
+    };
+    let resize = resize.as_deref().map(parse_size).transpose()?;
+    let opts = himap::mapper_cli::MapOptions {
+        dataset,
+        out: out.clone(),
+        config: cfg,
+        start,
+        end,
+        stride,
+        resize,
+        threads,
+        backend,
+        progress: true,
+        preflight: !no_preflight,
+        stop_after: None,
+        checkpoint_every,
+        resume,
+    };
+    let s = himap::mapper_cli::run_map(&opts)?;
+    println!("{}", himap::mapper_cli::summary_table(&s));
+    println!("outputs in {}", out.display());
+    Ok(())
+}
+
+/// `himap demo`.
+fn demo(args: DemoArgs) -> anyhow::Result<()> {
+    let DemoArgs {
+        out,
+        frames,
+        size,
+        config,
+        threads,
+        backend,
+    } = args;
+    backend.parse::<himap::select::BackendChoice>()?;
+    let cfg = match &config {
+        Some(p) => himap::config::Config::from_file_over(p, &himap::config::Config::demo())?,
+        None => himap::config::Config::demo(),
+    };
+    let size = parse_size(&size)?;
+    println!(
+        "synthesising a {frames}-frame {}x{} room and mapping it with the demo preset \
+             (small with 20 online iterations and no early termination)",
+        size.0, size.1
+    );
+    let (s, dir) =
+        himap::mapper_cli::run_demo(out.as_deref(), cfg, frames, size, threads, &backend, true)?;
+    println!("{}", himap::mapper_cli::summary_table(&s));
+    println!("outputs in {}", dir.display());
+    Ok(())
+}
+
+/// `himap devices`.
+fn devices() -> anyhow::Result<()> {
+    print!("{}", himap_vulkan::describe_devices());
+    let d = himap::select::decide(himap::select::BackendChoice::Auto);
+    println!(
+        "--backend auto would use: {}",
+        if d.vulkan { "vulkan" } else { "cpu" }
+    );
+    println!("  ({})", d.reason);
+    Ok(())
+}
+
+/// `himap bench`.
+fn bench(args: BenchArgs) -> anyhow::Result<()> {
+    let BenchArgs {
+        rays,
+        steps,
+        backend,
+        config,
+        threads,
+    } = args;
+    let opts = himap::bench::BenchOptions {
+        rays,
+        steps,
+        backends: backend,
+        configs: config,
+        threads,
+    };
+    himap::bench::run_bench(&opts, &mut std::io::stdout())?;
+    Ok(())
+}
+
+/// `himap mesh`.
+fn mesh(args: MeshArgs) -> anyhow::Result<()> {
+    let MeshArgs {
+        map,
+        out,
+        resolution,
+        level,
+        threads,
+    } = args;
+    let (faces, level) = himap::mapper_cli::mesh_saved_map(&map, &out, resolution, level, threads)?;
+    println!(
+        "wrote {} ({faces} faces, level {level:.4} m)",
+        out.display()
+    );
+    Ok(())
+}
+
+/// `himap train-demo`.
+fn train_demo(args: TrainDemoArgs) -> anyhow::Result<()> {
+    let TrainDemoArgs {
+        steps,
+        rays,
+        threads,
+        seed,
+    } = args;
+    let cfg = himap::dump::small_config(himap_core::render::RenderMode::SdfDensity);
+    let layout = himap_core::model::ModelLayout::new(&cfg)?;
+    println!(
+            "training a {}-parameter field on an analytic sphere-in-a-box target: {steps} steps x {rays} rays",
+            layout.param_count()
+        );
+    let start = std::time::Instant::now();
+    let (first, last) = himap::train_demo::run(
+        layout,
+        steps,
+        rays,
+        threads,
+        seed,
+        |step, loss, psnr| println!("step {step:5}  loss {loss:.5}  PSNR {psnr:6.2} dB"),
+        (steps / 10).max(1),
+    )?;
+    println!(
+        "loss {first:.5} -> {last:.5} in {:.1} s",
+        start.elapsed().as_secs_f32()
+    );
+    Ok(())
+}
+
+/// `himap synth`.
+fn synth(args: SynthArgs) -> anyhow::Result<()> {
+    let SynthArgs {
+        out,
+        scene,
+        frames,
+        width,
+        height,
+        seed,
+    } = args;
+    match scene.as_str() {
+        "room" => {
+            let opts = himap::synth::SynthOptions {
+                frames: frames.unwrap_or(60),
+                width,
+                height,
+                seed,
+            };
+            let s = himap::synth::write_synthetic(&out, &opts)
+                .with_context(|| format!("writing the synthetic sequence to {}", out.display()))?;
+            println!(
+                "wrote {} frames of {}x{} to {} ({} ground-truth triangles); scene box {:?} .. {:?}",
+                s.frames,
+                s.intrinsics.width,
+                s.intrinsics.height,
+                s.out.display(),
+                s.mesh_triangles,
+                s.scene_box.min,
+                s.scene_box.max
+            );
+        }
+        "house" => {
+            let opts = himap::synth::house::HouseOptions {
+                frames: frames.unwrap_or(360),
+                width,
+                height,
+                seed,
+            };
+            let s = himap::synth::house::write_house(&out, &opts)
+                .with_context(|| format!("writing the house sequence to {}", out.display()))?;
+            let (lo, hi) = s.house.interior();
+            println!(
+                "wrote {} frames of {}x{} of a {}-room house ({:.1} x {:.1} x {:.1} m, {:.1} m \
+                 walk) to {} ({} ground-truth triangles; no scene box: the default box policy \
+                 applies)",
+                s.frames,
+                s.intrinsics.width,
+                s.intrinsics.height,
+                s.house.lengths.len(),
+                hi[0] - lo[0],
+                hi[1] - lo[1],
+                hi[2] - lo[2],
+                s.path_m,
+                out.display(),
+                s.mesh_triangles,
+            );
+        }
+        other => anyhow::bail!("unknown synthetic scene '{other}': use room or house"),
+    }
+    Ok(())
+}
+
+/// `himap eval`.
+fn eval(args: EvalArgs) -> anyhow::Result<()> {
+    let EvalArgs {
+        mesh,
+        gt,
+        json,
+        samples,
+        cull,
+        config,
+    } = args;
+    use himap::eval::{Culling, EvalOptions};
+    let culling = match cull.as_str() {
+        "none" => Culling::None,
+        "frustum" => Culling::Frustum,
+        "occlusion" => Culling::FrustumOcclusion,
+        other => anyhow::bail!("unknown culling '{other}': use none, frustum or occlusion"),
+    };
+    let dataset = match config {
+        Some(p) => himap::config::Config::from_file(&p)?.dataset,
+        None => Default::default(),
+    };
+    let opts = EvalOptions {
+        n_samples: samples,
+        culling,
+        dataset,
+        ..EvalOptions::default()
+    };
+    let report = himap::eval::run_eval_cli(&mesh, &gt, json.as_deref(), &opts)?;
+    println!("{report}");
+    Ok(())
+}
+
+/// `himap warp-check`.
+fn warp_check(args: WarpCheckArgs) -> anyhow::Result<()> {
+    let WarpCheckArgs {
+        dataset,
+        config,
+        map,
+        frames,
+        resize,
+        window,
+        step,
+        anchors,
+        pixels,
+        threads,
+        seed,
+        blur,
+        focal_scale,
+    } = args;
+    let config = match config {
+        Some(p) => himap::config::Config::from_file(&p)?,
+        None => himap::config::Config::small(),
+    };
+    let mut load = himap::dataset::LoadOptions::default();
+    if let Some(f) = frames {
+        let (start, end, stride) = parse_frames(&f)?;
+        load.start = start;
+        load.end = end;
+        load.stride = stride;
+    }
+    load.resize = resize.as_deref().map(parse_size).transpose()?;
+    let opts = himap::warp_check::WarpCheckOptions {
+        dataset,
+        load,
+        config,
+        window,
+        step,
+        anchors,
+        pixels,
+        map,
+        threads,
+        seed,
+        blur,
+        focal_scale,
+    };
+    let (rows, total) = himap::warp_check::run(&opts)?;
+    let with_map = opts.map.is_some();
+    println!("{}", himap::warp_check::WarpStats::header(with_map));
+    for r in &rows {
+        println!("{}", r.row(&r.first.to_string()));
+    }
+    println!("{}", total.row("all"));
+    println!("{}", total.basin_line());
+    Ok(())
+}
+
+/// `himap dump-step`.
+fn dump_step(args: DumpStepArgs) -> anyhow::Result<()> {
+    let DumpStepArgs {
+        out,
+        seed,
+        rays,
+        render,
+    } = args;
+    let opts = DumpOptions {
+        seed,
+        rays,
+        render_mode: parse_render(&render)?,
+    };
+    let loss = himap::dump::dump_step(&out, &opts).with_context(|| "dump-step failed")?;
+    println!("wrote {} (loss {loss})", out.display());
     Ok(())
 }
