@@ -53,6 +53,75 @@ impl Group {
     }
 }
 
+/// One value per parameter group, indexed by [`Group`] (`x[Group::Beta]`) instead of a bare
+/// number. Dereferences to the array in [`Group::ALL`] order for iteration and for the code
+/// that walks every group alike.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub struct PerGroup<T>(pub [T; NUM_GROUPS]);
+
+impl<T> PerGroup<T> {
+    /// `f(group)` for every group, in [`Group::ALL`] order.
+    pub fn from_fn(mut f: impl FnMut(Group) -> T) -> Self {
+        Self(core::array::from_fn(|g| f(Group::ALL[g])))
+    }
+
+    /// `f` applied to every group's value.
+    pub fn map<U>(self, f: impl FnMut(T) -> U) -> PerGroup<U> {
+        PerGroup(self.0.map(f))
+    }
+
+    /// `(group, value)` pairs in [`Group::ALL`] order.
+    pub fn iter_groups(&self) -> impl Iterator<Item = (Group, &T)> {
+        Group::ALL.into_iter().zip(self.0.iter())
+    }
+}
+
+impl<T> core::ops::Index<Group> for PerGroup<T> {
+    type Output = T;
+    fn index(&self, g: Group) -> &T {
+        &self.0[g as usize]
+    }
+}
+
+impl<T> core::ops::IndexMut<Group> for PerGroup<T> {
+    fn index_mut(&mut self, g: Group) -> &mut T {
+        &mut self.0[g as usize]
+    }
+}
+
+/// By position in [`Group::ALL`], for the code that walks every group alike.
+impl<T> core::ops::Index<usize> for PerGroup<T> {
+    type Output = T;
+    fn index(&self, g: usize) -> &T {
+        &self.0[g]
+    }
+}
+
+impl<T> core::ops::IndexMut<usize> for PerGroup<T> {
+    fn index_mut(&mut self, g: usize) -> &mut T {
+        &mut self.0[g]
+    }
+}
+
+impl<T> core::ops::Deref for PerGroup<T> {
+    type Target = [T; NUM_GROUPS];
+    fn deref(&self) -> &[T; NUM_GROUPS] {
+        &self.0
+    }
+}
+
+impl<T> core::ops::DerefMut for PerGroup<T> {
+    fn deref_mut(&mut self) -> &mut [T; NUM_GROUPS] {
+        &mut self.0
+    }
+}
+
+impl<T> From<[T; NUM_GROUPS]> for PerGroup<T> {
+    fn from(a: [T; NUM_GROUPS]) -> Self {
+        Self(a)
+    }
+}
+
 /// Everything that fixes the shape and behaviour of the field.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ModelConfig {

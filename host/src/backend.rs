@@ -15,7 +15,7 @@ use himap_core::mapping::{pixel_train, PixelResult, WindowImages, WindowView};
 use himap_core::mlp::{MlpScratch, MAX_WIDTH};
 use himap_core::model::{
     color_at, ray_forward_taped, ray_train, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout,
-    Params, Ray, RayCache, RayResult, SampleScratch, StoredTape, NUM_GROUPS,
+    Params, PerGroup, Ray, RayCache, RayResult, SampleScratch, StoredTape, NUM_GROUPS,
 };
 use himap_core::render::MAX_SAMPLES;
 use himap_core::step::{
@@ -127,9 +127,9 @@ pub enum CpuError {
 #[derive(Clone, Debug)]
 pub struct ModelData {
     pub layout: ModelLayout,
-    pub params: [Vec<f32>; NUM_GROUPS],
-    pub m: [Vec<f32>; NUM_GROUPS],
-    pub v: [Vec<f32>; NUM_GROUPS],
+    pub params: PerGroup<Vec<f32>>,
+    pub m: PerGroup<Vec<f32>>,
+    pub v: PerGroup<Vec<f32>>,
     /// Adam steps taken.
     pub t: u32,
 }
@@ -143,11 +143,10 @@ impl ModelData {
 
     /// A freshly initialised model (deterministic for `seed`).
     pub fn new(layout: ModelLayout, seed: u32) -> Result<Self, himap_core::Error> {
-        let lens = layout.group_lens();
-        let mut params: [Vec<f32>; NUM_GROUPS] = Default::default();
-        for (g, p) in params.iter_mut().enumerate() {
-            *p = vec![0.0; lens[g]];
-            layout.init_group(Group::ALL[g], p, seed)?;
+        let lens = PerGroup(layout.group_lens());
+        let mut params = lens.map(|n| vec![0.0; n]);
+        for g in Group::ALL {
+            layout.init_group(g, &mut params[g], seed)?;
         }
         Ok(Self {
             layout,
@@ -161,11 +160,11 @@ impl ModelData {
     /// Borrowed read view for the core's kernels.
     pub fn view(&self) -> Params<'_, [f32]> {
         Params {
-            geometry_grid: &self.params[0],
-            appearance_grid: &self.params[1],
-            geometry_mlp: &self.params[2],
-            appearance_mlp: &self.params[3],
-            beta: self.params[4][0],
+            geometry_grid: &self.params[Group::GeometryGrid],
+            appearance_grid: &self.params[Group::AppearanceGrid],
+            geometry_mlp: &self.params[Group::GeometryMlp],
+            appearance_mlp: &self.params[Group::AppearanceMlp],
+            beta: self.params[Group::Beta][0],
         }
     }
 
@@ -173,14 +172,15 @@ impl ModelData {
     /// ([`himap_core::mlp::transpose_weights`]), for the CPU's forward.
     pub fn transposed_mlps(&self) -> [Vec<f32>; 2] {
         let l = &self.layout;
-        let mut out = [
-            vec![0.0; self.params[2].len()],
-            vec![0.0; self.params[3].len()],
-        ];
+        let (geometry, appearance) = (
+            &self.params[Group::GeometryMlp],
+            &self.params[Group::AppearanceMlp],
+        );
+        let mut out = [vec![0.0; geometry.len()], vec![0.0; appearance.len()]];
         // The lengths match the layout by construction (`new`, `write_params` check them).
-        himap_core::mlp::transpose_weights(&l.geometry_mlp, &self.params[2], &mut out[0])
+        himap_core::mlp::transpose_weights(&l.geometry_mlp, geometry, &mut out[0])
             .expect("geometry decoder parameters match the layout");
-        himap_core::mlp::transpose_weights(&l.appearance_mlp, &self.params[3], &mut out[1])
+        himap_core::mlp::transpose_weights(&l.appearance_mlp, appearance, &mut out[1])
             .expect("appearance decoder parameters match the layout");
         out
     }

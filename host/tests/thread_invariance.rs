@@ -46,7 +46,7 @@ fn reference(
         }
     }
     Reference {
-        params,
+        params: params.0,
         grads,
         results: all,
     }

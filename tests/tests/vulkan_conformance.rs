@@ -126,7 +126,7 @@ impl CpuState {
         let lens = data.layout.group_lens();
         Self {
             layout: data.layout,
-            params: data.params.clone(),
+            params: data.params.0.clone(),
             m: lens.map(|n| vec![0.0; n]),
             v: lens.map(|n| vec![0.0; n]),
             grad: lens.map(|n| vec![0; n]),

@@ -38,11 +38,12 @@ use crate::{entry, words, WORKGROUP_SIZE};
 use himap_core::adam::{AdamConfig, AdamStep};
 use himap_core::error::check_len;
 use himap_core::gpu_abi::{
-    AdamPush, LossCheckPush, PushWords, RangePush, SamplePush, TrainPush, PIXEL_RESULT_FLOATS,
-    PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS, SAMPLE_FLOATS,
+    AdamPush, LossCheckPush, PushWords, RangePush, SamplePush, TrainPush, PARAM_BINDINGS,
+    PIXEL_RESULT_FLOATS, PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS,
+    SAMPLE_FLOATS,
 };
 use himap_core::mapping::PixelResult;
-use himap_core::model::{Group, LossConfig, ModelLayout, Ray, RayResult, NUM_GROUPS};
+use himap_core::model::{Group, LossConfig, ModelLayout, PerGroup, Ray, RayResult, NUM_GROUPS};
 use himap_core::render::MAX_SAMPLES;
 use himap_core::step::{
     summarize, summarize_pixels, window_slots, Backend, ImageStore, MapBatch, StepStats,
@@ -91,30 +92,33 @@ impl GroupBuffers {
     }
 }
 
-/// The parameter bindings of the field-reading entry points (`PARAM_BINDINGS`).
-fn param_bindings(groups: &[GroupBuffers; NUM_GROUPS]) -> [&Buffer; 7] {
+/// The bindings of the field-reading entry points ([`PARAM_BINDINGS`] of them): geometry grid
+/// (low, high part), appearance grid (low, high part), geometry MLP, appearance MLP, beta;
+/// `buffer` picks each part's parameters or gradients.
+fn field_bindings(
+    groups: &PerGroup<GroupBuffers>,
+    buffer: fn(&Part) -> &Buffer,
+) -> [&Buffer; PARAM_BINDINGS] {
+    use Group::*;
     [
-        &groups[0].lo().params,
-        &groups[0].hi().params,
-        &groups[1].lo().params,
-        &groups[1].hi().params,
-        &groups[2].lo().params,
-        &groups[3].lo().params,
-        &groups[4].lo().params,
+        buffer(groups[GeometryGrid].lo()),
+        buffer(groups[GeometryGrid].hi()),
+        buffer(groups[AppearanceGrid].lo()),
+        buffer(groups[AppearanceGrid].hi()),
+        buffer(groups[GeometryMlp].lo()),
+        buffer(groups[AppearanceMlp].lo()),
+        buffer(groups[Beta].lo()),
     ]
 }
 
+/// The parameter bindings of the field-reading entry points.
+fn param_bindings(groups: &PerGroup<GroupBuffers>) -> [&Buffer; PARAM_BINDINGS] {
+    field_bindings(groups, |p| &p.params)
+}
+
 /// The gradient bindings of `sample_backward_cs`, in the order of [`param_bindings`].
-fn grad_bindings(groups: &[GroupBuffers; NUM_GROUPS]) -> [&Buffer; 7] {
-    [
-        &groups[0].lo().grad,
-        &groups[0].hi().grad,
-        &groups[1].lo().grad,
-        &groups[1].hi().grad,
-        &groups[2].lo().grad,
-        &groups[3].lo().grad,
-        &groups[4].lo().grad,
-    ]
+fn grad_bindings(groups: &PerGroup<GroupBuffers>) -> [&Buffer; PARAM_BINDINGS] {
+    field_bindings(groups, |p| &p.grad)
 }
 
 /// Construction options of [`VulkanBackend`].
@@ -135,7 +139,7 @@ pub struct VulkanBackend {
     max_groups: u32,
     max_binding: u64,
     model_words: Buffer,
-    groups: [GroupBuffers; NUM_GROUPS],
+    groups: PerGroup<GroupBuffers>,
     /// Per-batch inputs and outputs (host-visible, grown on demand): rays (or query points),
     /// per-item results, sampled pixels, the mapping window's words.
     input: Option<Buffer>,
@@ -439,7 +443,7 @@ impl VulkanBackend {
                 len: lens[g],
             })
         };
-        let groups = [make(0)?, make(1)?, make(2)?, make(3)?, make(4)?];
+        let groups = PerGroup([make(0)?, make(1)?, make(2)?, make(3)?, make(4)?]);
         {
             let g = &groups;
             gpu.submit(|r| {
@@ -759,7 +763,7 @@ fn range_push(first: u32, count: u32) -> [u8; 32] {
 /// and sample records.
 struct Passes<'a> {
     pipelines: &'a Pipelines,
-    groups: &'a [GroupBuffers; NUM_GROUPS],
+    groups: &'a PerGroup<GroupBuffers>,
     model_words: &'a Buffer,
     rays: &'a Buffer,
     samples: &'a Buffer,
@@ -980,8 +984,8 @@ impl Backend for VulkanBackend {
                     pipeline,
                     &[
                         model_words,
-                        &groups[4].lo().params,
-                        &groups[4].lo().grad,
+                        &groups[Group::Beta].lo().params,
+                        &groups[Group::Beta].lo().grad,
                         input,
                         samples,
                         output,
@@ -1018,7 +1022,13 @@ impl Backend for VulkanBackend {
             let pipeline = &pipelines.ray_render;
             let set = r.bind(
                 pipeline,
-                &[model_words, &groups[4].lo().params, input, samples, output],
+                &[
+                    model_words,
+                    &groups[Group::Beta].lo().params,
+                    input,
+                    samples,
+                    output,
+                ],
             )?;
             dispatch_items(r, pipeline, &set, n, passes.max_groups, range_push);
             Ok(())
@@ -1209,8 +1219,8 @@ impl Backend for VulkanBackend {
                     pipeline,
                     &[
                         model_words,
-                        &groups[4].lo().params,
-                        &groups[4].lo().grad,
+                        &groups[Group::Beta].lo().params,
+                        &groups[Group::Beta].lo().grad,
                         window,
                         pixels,
                         images,
