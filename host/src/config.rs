@@ -427,8 +427,8 @@ impl Config {
     /// Sized for a 2-core CPU; the paper's model and mapper (`paper`) except:
     /// - geometry 5 levels, 64..4 cm (the paper has 6, to 2 cm); appearance 24 / 2 cm with 16
     ///   channels (the paper's levels, 32 channels);
-    /// - 300 initialisation iterations, 512 pixels per iteration, 40 online iterations (the
-    ///   paper's 20, doubled with the time early termination saves);
+    /// - 300 initialisation iterations, 512 pixels per iteration, 60 online iterations (the
+    ///   paper's 20, tripled with the time early termination saves);
     /// - early ray termination online (`model.min_transmittance` 1e-4; none during the
     ///   initialisation, `mapper.init_min_transmittance` 0);
     /// - decoder learning rate 1e-3 (the paper's 1e-5 barely moves in 300 iterations) and
@@ -459,7 +459,7 @@ impl Config {
         c.mapper.pixels = 512;
         c.mapper.new_frame_share = 0.75;
         c.mapper.max_keyframes = 128;
-        c.mapper.iters = 40;
+        c.mapper.iters = 60;
         c.model.min_transmittance = 1e-4;
         c.eval.mesh_resolution = 0.04;
         c.eval.mesh_samples = 50_000;
