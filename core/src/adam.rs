@@ -46,8 +46,12 @@ impl AdamConfig {
 
 /// The scalars of one Adam step of one group, computed once on the host and passed to every
 /// [`adam_update`] of that step.
-#[derive(Clone, Copy, Debug, PartialEq)]
+///
+/// `#[repr(C)]`: it is the tail of the GPU's push-constant block
+/// ([`crate::gpu_abi::AdamPush`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[repr(C)]
 pub struct AdamStep {
     /// Learning rate.
     pub lr: f32,

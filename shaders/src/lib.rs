@@ -28,7 +28,7 @@
 //! ("not implemented yet"), and `f64` without the `Float64` capability (`math::sin`/`cos`).
 #![cfg_attr(target_arch = "spirv", no_std)]
 
-use himap_core::adam::{self, AdamStep};
+use himap_core::adam;
 use himap_core::camera::{Intrinsics, Pose};
 pub use himap_core::gpu_abi::WORKGROUP_SIZE;
 use himap_core::gpu_abi::{
@@ -970,18 +970,6 @@ pub fn color_query_cs(
     out[3 * i + 2] = c[2];
 }
 
-/// The [`AdamStep`] of an [`AdamPush`].
-fn adam_step(pc: &AdamPush) -> AdamStep {
-    AdamStep {
-        lr: pc.lr,
-        beta1: pc.beta1,
-        beta2: pc.beta2,
-        eps: pc.eps,
-        bias_correction1: pc.bias_correction1,
-        bias_correction2: pc.bias_correction2,
-    }
-}
-
 /// A step's first finiteness check: counts the result records whose loss is not finite
 /// into `status[0]` (the CPU's `StepStats::rejected` test on the same values).
 ///
@@ -1027,7 +1015,7 @@ pub fn adam_check_cs(
     if i >= params.len() || i >= m.len() || i >= v.len() || i >= grad.len() {
         return;
     }
-    let s = adam_step(pc);
+    let s = pc.step;
     if !adam::adam_update_is_finite(&s, params[i], m[i], v[i], fixed::from_fixed(grad[i])) {
         count_nonfinite(status);
     }
@@ -1056,7 +1044,7 @@ pub fn adam_cs(
     if i >= params.len() || i >= m.len() || i >= v.len() || i >= grad.len() {
         return;
     }
-    let s = adam_step(pc);
+    let s = pc.step;
     let mut p = params[i];
     let mut mi = m[i];
     let mut vi = v[i];

@@ -891,12 +891,7 @@ impl<'a> Passes<'a> {
                         push_bytes(AdamPush {
                             n: count,
                             first,
-                            lr: s.lr,
-                            beta1: s.beta1,
-                            beta2: s.beta2,
-                            eps: s.eps,
-                            bias_correction1: s.bias_correction1,
-                            bias_correction2: s.bias_correction2,
+                            step: *s,
                         })
                     },
                 );
@@ -1310,8 +1305,10 @@ mod tests {
         let b = push_bytes(AdamPush {
             n: 1,
             first: 0x0403_0201,
-            bias_correction2: 1.0,
-            ..Default::default()
+            step: himap_core::adam::AdamStep {
+                bias_correction2: 1.0,
+                ..Default::default()
+            },
         });
         assert_eq!(&b[..8], &[1, 0, 0, 0, 1, 2, 3, 4]);
         assert_eq!(&b[28..], &1.0f32.to_le_bytes());

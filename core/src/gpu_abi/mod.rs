@@ -97,20 +97,15 @@ pub struct TrainPush {
     pub _pad: u32,
 }
 
-/// Push constants of the Adam passes: the [`crate::adam::AdamStep`] scalars plus the item
-/// range.
+/// Push constants of the Adam passes: the item range and the group's
+/// [`crate::adam::AdamStep`].
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 #[repr(C)]
 pub struct AdamPush {
     /// Parameters in this dispatch; invocation `i` updates parameter `first + i`.
     pub n: u32,
     pub first: u32,
-    pub lr: f32,
-    pub beta1: f32,
-    pub beta2: f32,
-    pub eps: f32,
-    pub bias_correction1: f32,
-    pub bias_correction2: f32,
+    pub step: crate::adam::AdamStep,
 }
 
 /// Push constants of the loss check: the item range and where a record's loss fields are.
@@ -174,15 +169,16 @@ impl PushWords for TrainPush {
 
 impl PushWords for AdamPush {
     fn words(&self) -> [u32; MAX_PUSH_WORDS] {
+        let s = &self.step;
         [
             self.n,
             self.first,
-            self.lr.to_bits(),
-            self.beta1.to_bits(),
-            self.beta2.to_bits(),
-            self.eps.to_bits(),
-            self.bias_correction1.to_bits(),
-            self.bias_correction2.to_bits(),
+            s.lr.to_bits(),
+            s.beta1.to_bits(),
+            s.beta2.to_bits(),
+            s.eps.to_bits(),
+            s.bias_correction1.to_bits(),
+            s.bias_correction2.to_bits(),
         ]
     }
 }
