@@ -773,6 +773,30 @@ pub fn grid_forward_rows(
     }
 }
 
+/// Calls `f` with the first index of every row of channels that [`grid_forward_rows`] reads
+/// and [`grid_backward_rows`] writes at `p` (18 corners per factorized level; nothing for
+/// dense grids). Host-side cache hints use it; it computes no feature.
+#[inline(always)]
+pub fn for_each_row(layout: &GridLayout, p: [f32; 3], mut f: impl FnMut(usize)) {
+    if layout.kind == GridKind::Dense {
+        return;
+    }
+    let (nl, nc) = kernel_dims(layout);
+    let (xn, _) = normalize_with_mask(&layout.aabb, p);
+    let mut l = 0;
+    while l < nl {
+        let lv = &layout.level[l];
+        let k = vm_corners(lv, nc, &locate(xn, lv.res));
+        for o in k.xy.into_iter().chain(k.xz).chain(k.yz) {
+            f(o);
+        }
+        for o in k.x.into_iter().chain(k.y).chain(k.z) {
+            f(o);
+        }
+        l += 1;
+    }
+}
+
 /// The parameter contributions of [`grid_backward`] (not dL/dp), row by row: for each of a
 /// level's 18 corners one [`GradSink::add_scaled`] over the channels, each contribution the
 /// same product as in [`grid_backward`] (a product of two factors either way round is the same
@@ -867,6 +891,54 @@ mod tests {
             levels: 2,
             channels: 2,
             cell_sizes: [0.5, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        }
+    }
+
+    /// Records the first index of every row `grid_backward_rows` adds.
+    struct RowStarts(std::vec::Vec<usize>);
+
+    impl GradSink for RowStarts {
+        fn add(&mut self, _i: usize, _g: f32) {
+            panic!("rows only");
+        }
+        fn add_scaled(
+            &mut self,
+            offset: usize,
+            _g: f32,
+            _xs: &[f32; crate::mlp::MAX_WIDTH],
+            _n: usize,
+        ) {
+            self.0.push(offset);
+        }
+    }
+
+    /// The prefetch hint names exactly the rows the row-wise backward writes, at every level,
+    /// for points inside, on the faces of and outside the box.
+    #[test]
+    fn for_each_row_names_the_backward_rows() {
+        let aabb = Aabb::new([-1.0, -0.5, -2.0], [3.0, 1.5, 2.0]);
+        for cfg in [
+            GridConfig::hi_map_geometry(),
+            GridConfig::hi_map_appearance(),
+        ] {
+            let g = GridLayout::new(&cfg, aabb).unwrap();
+            let params = std::vec![0.25f32; g.param_count as usize];
+            let d_feat = [1.0f32; MAX_GRID_FEATURES];
+            for p in [
+                [0.3, 0.2, -0.7],
+                [-1.0, 1.5, 2.0],
+                [7.0, -3.0, 0.1],
+                [2.99, 0.0, 1.99],
+            ] {
+                let mut written = RowStarts(std::vec::Vec::new());
+                grid_backward_rows(&g, &params, p, &d_feat, &mut written);
+                let mut named = std::vec::Vec::new();
+                for_each_row(&g, p, |o| named.push(o));
+                written.0.sort_unstable();
+                named.sort_unstable();
+                assert_eq!(named.len(), 18 * g.levels as usize);
+                assert_eq!(named, written.0, "{p:?}");
+            }
         }
     }
 

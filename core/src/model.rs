@@ -307,7 +307,17 @@ pub struct Params<'a, P: ParamRead + ?Sized> {
 
 /// Receives gradient contributions for all groups.
 pub trait ModelGradSink {
+    /// Whether [`Self::prefetch`] does anything (the backward then announces each sample's
+    /// gradient rows one sample ahead; sinks without caches leave it false and pay nothing).
+    const PREFETCH: bool = false;
+
     fn add(&mut self, group: Group, i: usize, g: f32);
+
+    /// A cache hint: contributions to `group` from `offset` on will follow soon. It changes no
+    /// value (host sinks over large buffers overlap the memory latency of the next sample's
+    /// rows with the current sample's work).
+    #[inline(always)]
+    fn prefetch(&mut self, _group: Group, _offset: usize) {}
 
     /// `add(group, offset + i, g * xs[i])` for every `i < n` (see
     /// [`GradSink::add_scaled`]).
@@ -1204,6 +1214,30 @@ pub fn ray_composite_backward(
     );
 }
 
+/// Announces to `sink` the grid rows the backward of the sample at depth `t` adds into (the
+/// same skips as [`sample_backward`]): a cache hint, no value changes.
+#[inline(always)]
+fn prefetch_sample_grads<S: ModelGradSink>(
+    layout: &ModelLayout,
+    ray: &Ray,
+    t: f32,
+    d_sdf: f32,
+    d_rgb: [f32; 3],
+    sink: &mut S,
+) {
+    let p = point_on_ray(ray, t);
+    if d_sdf != 0.0 {
+        grid::for_each_row(&layout.geometry_grid, p, |o| {
+            sink.prefetch(Group::GeometryGrid, o)
+        });
+    }
+    if d_rgb[0] != 0.0 || d_rgb[1] != 0.0 || d_rgb[2] != 0.0 {
+        grid::for_each_row(&layout.appearance_grid, p, |o| {
+            sink.prefetch(Group::AppearanceGrid, o)
+        });
+    }
+}
+
 /// Backward from the rendered colour, depth and opacity of a ray whose forward is in `cache`.
 #[allow(clippy::too_many_arguments)]
 pub fn ray_backward<P: ParamRead + ?Sized, S: ModelGradSink, T: SampleTape>(
@@ -1238,8 +1272,15 @@ pub fn ray_backward<P: ParamRead + ?Sized, S: ModelGradSink, T: SampleTape>(
         &mut d_rgb,
         &mut d_beta,
     );
+    if S::PREFETCH {
+        prefetch_sample_grads(layout, ray, cache.t[0], d_sdf[0], d_rgb[0], sink);
+    }
     let mut i = 0;
     while i < n {
+        if S::PREFETCH && i + 1 < n {
+            let j = i + 1;
+            prefetch_sample_grads(layout, ray, cache.t[j], d_sdf[j], d_rgb[j], sink);
+        }
         tape.backward(
             layout,
             params,
