@@ -341,6 +341,14 @@ const EXIT_DEVICE: u8 = 3;
 /// with `RUST_BACKTRACE=1`: errors are values here; real bugs panic, and panics keep Rust's
 /// backtrace), then exits with the code of [`exit_code`].
 fn main() -> std::process::ExitCode {
+    if let Some(missing) = missing_cpu_features() {
+        eprintln!(
+            "error: this himap was built for x86-64-v3 CPUs (.cargo/config.toml) and this CPU \
+             lacks {missing}; rebuild it for any x86-64 CPU (same results, about 10 % slower \
+             mapping) with: RUSTFLAGS=\"-C target-cpu=x86-64\" cargo build --release"
+        );
+        return std::process::ExitCode::FAILURE;
+    }
     match run() {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
@@ -351,6 +359,25 @@ fn main() -> std::process::ExitCode {
             std::process::ExitCode::from(exit_code(&e))
         }
     }
+}
+
+/// The first CPU feature this binary was compiled to use that the CPU running it lacks (an
+/// x86-64-v3 build on an older CPU would otherwise die of an illegal instruction).
+fn missing_cpu_features() -> Option<&'static str> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        macro_rules! check {
+            ($($f:tt),*) => {
+                $(
+                    if cfg!(target_feature = $f) && !std::arch::is_x86_feature_detected!($f) {
+                        return Some($f);
+                    }
+                )*
+            };
+        }
+        check!("avx", "avx2", "fma", "bmi1", "bmi2", "f16c", "lzcnt", "movbe");
+    }
+    None
 }
 
 /// [`EXIT_DEVICE`] when a Vulkan device error is anywhere in the chain, else [`EXIT_FAILURE`].
