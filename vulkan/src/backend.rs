@@ -31,15 +31,19 @@
 //! larger groups, and decoders past one binding, are a [`VulkanError::TensorTooLarge`] at
 //! construction.
 
+use crate::buffers::{
+    download, download_f32, ensure, ensure_in, f32_bytes, param_bindings, u32_bytes, upload,
+    upload_at, GroupBuffers, Part,
+};
 use crate::device;
 use crate::error::VulkanError;
-use crate::raw::{Buffer, Gpu, Memory, Pipeline, Recorder, Set, ShaderModule};
-use crate::{entry, words, WORKGROUP_SIZE};
+use crate::passes::{dispatch_items, push_bytes, range_push, Passes, Pipelines};
+use crate::raw::{Buffer, Gpu, Memory, Pipeline, ShaderModule};
+use crate::{entry, words};
 use himap_core::adam::{AdamConfig, AdamStep};
 use himap_core::error::check_len;
 use himap_core::gpu_abi::{
-    AdamPush, LossCheckPush, PushWords, RangePush, SamplePush, TrainPush, PARAM_BINDINGS,
-    PIXEL_RESULT_FLOATS, PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS,
+    TrainPush, PIXEL_RESULT_FLOATS, PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS,
     SAMPLE_FLOATS,
 };
 use himap_core::mapping::PixelResult;
@@ -48,78 +52,6 @@ use himap_core::render::MAX_SAMPLES;
 use himap_core::step::{
     summarize, summarize_pixels, window_slots, Backend, ImageStore, MapBatch, StepStats,
 };
-
-struct Pipelines {
-    sample_forward: Pipeline,
-    ray_train: Pipeline,
-    sample_backward: Pipeline,
-    ray_render: Pipeline,
-    pixel_rays: Pipeline,
-    pixel_train: Pipeline,
-    adam: Pipeline,
-    loss_check: Pipeline,
-    adam_check: Pipeline,
-    sdf: Pipeline,
-    color: Pipeline,
-}
-
-/// One part of a group: parameters `start..start + len` with their Adam moments and
-/// fixed-point gradient.
-struct Part {
-    params: Buffer,
-    m: Buffer,
-    v: Buffer,
-    grad: Buffer,
-    start: usize,
-    len: usize,
-}
-
-/// Per-group device state: one part, or two for a grid larger than one storage-buffer binding
-/// allows (the shaders read such a group through `SplitParams`).
-struct GroupBuffers {
-    parts: Vec<Part>,
-    len: usize,
-}
-
-impl GroupBuffers {
-    fn lo(&self) -> &Part {
-        &self.parts[0]
-    }
-
-    /// The second part, or the first again when the group is whole.
-    fn hi(&self) -> &Part {
-        &self.parts[self.parts.len() - 1]
-    }
-}
-
-/// The bindings of the field-reading entry points ([`PARAM_BINDINGS`] of them): geometry grid
-/// (low, high part), appearance grid (low, high part), geometry MLP, appearance MLP, beta;
-/// `buffer` picks each part's parameters or gradients.
-fn field_bindings(
-    groups: &PerGroup<GroupBuffers>,
-    buffer: fn(&Part) -> &Buffer,
-) -> [&Buffer; PARAM_BINDINGS] {
-    use Group::*;
-    [
-        buffer(groups[GeometryGrid].lo()),
-        buffer(groups[GeometryGrid].hi()),
-        buffer(groups[AppearanceGrid].lo()),
-        buffer(groups[AppearanceGrid].hi()),
-        buffer(groups[GeometryMlp].lo()),
-        buffer(groups[AppearanceMlp].lo()),
-        buffer(groups[Beta].lo()),
-    ]
-}
-
-/// The parameter bindings of the field-reading entry points.
-fn param_bindings(groups: &PerGroup<GroupBuffers>) -> [&Buffer; PARAM_BINDINGS] {
-    field_bindings(groups, |p| &p.params)
-}
-
-/// The gradient bindings of `sample_backward_cs`, in the order of [`param_bindings`].
-fn grad_bindings(groups: &PerGroup<GroupBuffers>) -> [&Buffer; PARAM_BINDINGS] {
-    field_bindings(groups, |p| &p.grad)
-}
 
 /// Construction options of [`VulkanBackend`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -161,14 +93,6 @@ pub struct VulkanBackend {
     gpu: Gpu,
 }
 
-fn f32_bytes(v: &[f32]) -> Vec<u8> {
-    v.iter().flat_map(|x| x.to_le_bytes()).collect()
-}
-
-fn u32_bytes(v: &[u32]) -> Vec<u8> {
-    v.iter().flat_map(|x| x.to_le_bytes()).collect()
-}
-
 /// The model words the kernels read: the layout, then where each grid's parameters split
 /// across two bindings (`u32::MAX`: one binding), from the grids' part lengths.
 fn model_words(layout: &ModelLayout, grid_parts: [&[usize]; 2]) -> Vec<u32> {
@@ -182,136 +106,6 @@ fn model_words(layout: &ModelLayout, grid_parts: [&[usize]; 2]) -> Vec<u32> {
         };
     }
     w
-}
-
-/// Makes sure `slot` holds a host-visible buffer of at least `bytes`.
-fn ensure<'b>(
-    gpu: &Gpu,
-    slot: &'b mut Option<Buffer>,
-    bytes: u64,
-    what: &str,
-) -> Result<&'b mut Buffer, VulkanError> {
-    ensure_in(gpu, slot, bytes, Memory::Host, what)
-}
-
-/// Makes sure `slot` holds a buffer of at least `bytes` in `memory`.
-fn ensure_in<'b>(
-    gpu: &Gpu,
-    slot: &'b mut Option<Buffer>,
-    bytes: u64,
-    memory: Memory,
-    what: &str,
-) -> Result<&'b mut Buffer, VulkanError> {
-    let grow = match slot {
-        Some(b) => b.size() < bytes,
-        None => true,
-    };
-    if grow {
-        *slot = None;
-        *slot = Some(Buffer::new(
-            gpu.device(),
-            bytes.next_power_of_two(),
-            memory,
-            what,
-        )?);
-    }
-    slot.as_mut()
-        .ok_or(VulkanError::Unsupported("buffer allocation"))
-}
-
-/// Writes `data` at the start of `dst` (through `staging` when `dst` is not mapped).
-fn upload(
-    gpu: &mut Gpu,
-    staging: &mut Option<Buffer>,
-    dst: &mut Buffer,
-    data: &[u8],
-) -> Result<(), VulkanError> {
-    upload_at(gpu, staging, dst, 0, data)
-}
-
-/// Writes `data` at byte `offset` of `dst` (through `staging` when `dst` is not mapped).
-fn upload_at(
-    gpu: &mut Gpu,
-    staging: &mut Option<Buffer>,
-    dst: &mut Buffer,
-    offset: u64,
-    data: &[u8],
-) -> Result<(), VulkanError> {
-    if dst.write_mapped(offset, data) {
-        return Ok(());
-    }
-    let st = ensure(gpu, staging, data.len() as u64, "a staging buffer")?;
-    st.write_mapped(0, data);
-    let (st, dst): (&Buffer, &Buffer) = (st, dst);
-    let n = data.len() as u64;
-    gpu.submit(|r| {
-        r.copy(st, 0, dst, offset, n);
-        Ok(())
-    })
-}
-
-/// Reads `out.len()` floats from the start of `src`.
-fn download_f32(
-    gpu: &mut Gpu,
-    staging: &mut Option<Buffer>,
-    src: &Buffer,
-    out: &mut [f32],
-) -> Result<(), VulkanError> {
-    let mut bytes = vec![0u8; out.len() * 4];
-    download(gpu, staging, src, &mut bytes)?;
-    for (x, b) in out.iter_mut().zip(bytes.as_chunks::<4>().0) {
-        *x = f32::from_le_bytes(*b);
-    }
-    Ok(())
-}
-
-/// Reads `out.len()` bytes from the start of `src`.
-fn download(
-    gpu: &mut Gpu,
-    staging: &mut Option<Buffer>,
-    src: &Buffer,
-    out: &mut [u8],
-) -> Result<(), VulkanError> {
-    if src.read_mapped(0, out) {
-        return Ok(());
-    }
-    let n = out.len() as u64;
-    let st = ensure(gpu, staging, n, "a staging buffer")?;
-    {
-        let st: &Buffer = st;
-        gpu.submit(|r| {
-            r.copy(src, 0, st, 0, n);
-            Ok(())
-        })?;
-    }
-    st.read_mapped(0, out);
-    Ok(())
-}
-
-fn push_bytes(p: impl PushWords) -> [u8; 32] {
-    let words = p.words();
-    let mut b = [0u8; 32];
-    for (i, w) in words.iter().enumerate() {
-        b[4 * i..4 * i + 4].copy_from_slice(&w.to_le_bytes());
-    }
-    b
-}
-
-/// Items per dispatch and the dispatches covering `n` items: `(first, count, groups)`.
-fn chunks(n: usize, max_groups: u32) -> Vec<(u32, u32, u32)> {
-    let per = max_groups as usize * WORKGROUP_SIZE as usize;
-    let mut out = Vec::new();
-    let mut first = 0;
-    while first < n {
-        let count = (n - first).min(per);
-        out.push((
-            first as u32,
-            count as u32,
-            count.div_ceil(WORKGROUP_SIZE as usize) as u32,
-        ));
-        first += count;
-    }
-    out
 }
 
 impl VulkanBackend {
@@ -733,174 +527,6 @@ impl VulkanBackend {
     }
 }
 
-/// Dispatches `pipeline` over `n` items, one per invocation, in chunks within the
-/// workgroup-count limit; `push(first, count)` gives a chunk's push constants (the first
-/// `pipeline.push_size()` bytes are used).
-fn dispatch_items<'a>(
-    r: &mut Recorder<'a>,
-    pipeline: &'a Pipeline,
-    set: &Set<'a>,
-    n: usize,
-    max_groups: u32,
-    push: impl Fn(u32, u32) -> [u8; 32],
-) {
-    for (first, count, wg) in chunks(n, max_groups) {
-        let p = push(first, count);
-        r.dispatch(pipeline, set, &p[..pipeline.push_size()], wg);
-    }
-}
-
-/// Push constants of the entry points that take only the item range.
-fn range_push(first: u32, count: u32) -> [u8; 32] {
-    push_bytes(RangePush {
-        n: count,
-        first,
-        ..Default::default()
-    })
-}
-
-/// What the passes of one submission share: pipelines, model buffers, and the batch's rays
-/// and sample records.
-struct Passes<'a> {
-    pipelines: &'a Pipelines,
-    groups: &'a PerGroup<GroupBuffers>,
-    model_words: &'a Buffer,
-    rays: &'a Buffer,
-    samples: &'a Buffer,
-    /// The step's non-finite count.
-    status: &'a Buffer,
-    /// Sample records of the batch (rays x samples per ray).
-    records: usize,
-    max_groups: u32,
-}
-
-impl<'a> Passes<'a> {
-    /// Zeroes every gradient buffer and the step's non-finite count.
-    fn zero_grads(&self, r: &mut Recorder<'a>) {
-        for p in self.groups.iter().flat_map(|g| g.parts.iter()) {
-            r.zero(&p.grad);
-        }
-        r.zero(self.status);
-        r.barrier();
-    }
-
-    /// Pass 1: `sample_forward_cs` over every sample record.
-    fn sample_forward(
-        &self,
-        r: &mut Recorder<'a>,
-        seed: u32,
-        jitter: bool,
-    ) -> Result<(), VulkanError> {
-        let pipeline = &self.pipelines.sample_forward;
-        let set = r.bind(
-            pipeline,
-            &[
-                &[self.model_words][..],
-                &param_bindings(self.groups),
-                &[self.rays, self.samples],
-            ]
-            .concat(),
-        )?;
-        dispatch_items(
-            r,
-            pipeline,
-            &set,
-            self.records,
-            self.max_groups,
-            |first, count| {
-                push_bytes(SamplePush {
-                    n: count,
-                    first,
-                    seed,
-                    jitter: jitter as u32,
-                })
-            },
-        );
-        r.barrier();
-        Ok(())
-    }
-
-    /// Pass 3: `sample_backward_cs` over every sample record.
-    fn sample_backward(&self, r: &mut Recorder<'a>) -> Result<(), VulkanError> {
-        let pipeline = &self.pipelines.sample_backward;
-        let set = r.bind(
-            pipeline,
-            &[
-                &[self.model_words][..],
-                &param_bindings(self.groups),
-                &grad_bindings(self.groups),
-                &[self.rays, self.samples],
-            ]
-            .concat(),
-        )?;
-        dispatch_items(r, pipeline, &set, self.records, self.max_groups, range_push);
-        r.barrier();
-        Ok(())
-    }
-
-    /// The step's checks and update: `loss_check_cs` over the `n` result records of
-    /// `stride` floats (loss fields at `losses`), then `adam_check_cs` and `adam_cs` over
-    /// every part of every group (`adam_cs` does nothing when a check counted anything).
-    fn checked_adam(
-        &self,
-        r: &mut Recorder<'a>,
-        steps: &[AdamStep; NUM_GROUPS],
-        results: &'a Buffer,
-        n: usize,
-        stride: usize,
-        losses: (usize, usize),
-    ) -> Result<(), VulkanError> {
-        let pipeline = &self.pipelines.loss_check;
-        let set = r.bind(pipeline, &[results, self.status])?;
-        dispatch_items(r, pipeline, &set, n, self.max_groups, |first, count| {
-            push_bytes(LossCheckPush {
-                n: count,
-                first,
-                stride: stride as u32,
-                loss_a: losses.0 as u32,
-                loss_b: losses.1 as u32,
-                ..Default::default()
-            })
-        });
-        r.barrier();
-        self.adam(r, steps, &self.pipelines.adam_check)?;
-        r.barrier();
-        self.adam(r, steps, &self.pipelines.adam)
-    }
-
-    /// `pipeline` (`adam_cs` or `adam_check_cs`) over every part of every group.
-    fn adam(
-        &self,
-        r: &mut Recorder<'a>,
-        steps: &[AdamStep; NUM_GROUPS],
-        pipeline: &'a Pipeline,
-    ) -> Result<(), VulkanError> {
-        for (g, s) in self.groups.iter().zip(steps.iter()) {
-            for part in &g.parts {
-                let set = r.bind(
-                    pipeline,
-                    &[&part.params, &part.m, &part.v, &part.grad, self.status],
-                )?;
-                dispatch_items(
-                    r,
-                    pipeline,
-                    &set,
-                    part.len,
-                    self.max_groups,
-                    |first, count| {
-                        push_bytes(AdamPush {
-                            n: count,
-                            first,
-                            step: *s,
-                        })
-                    },
-                );
-            }
-        }
-        Ok(())
-    }
-}
-
 impl VulkanBackend {
     /// Splits `self` for recording a ray batch (train or render): the device, the passes
     /// over the staged rays and sample records, and the results buffer.
@@ -1284,41 +910,5 @@ impl Backend for VulkanBackend {
         )?;
         self.layout = layout;
         Ok(())
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn chunks_cover_every_item_once() {
-        assert!(chunks(0, 10).is_empty());
-        assert_eq!(chunks(1, 10), vec![(0, 1, 1)]);
-        assert_eq!(chunks(64 * 10, 10), vec![(0, 640, 10)]);
-        assert_eq!(chunks(641, 10), vec![(0, 640, 10), (640, 1, 1)]);
-        assert_eq!(chunks(130, 1), vec![(0, 64, 1), (64, 64, 1), (128, 2, 1)]);
-    }
-
-    #[test]
-    fn push_bytes_are_little_endian_words() {
-        let b = push_bytes(AdamPush {
-            n: 1,
-            first: 0x0403_0201,
-            step: himap_core::adam::AdamStep {
-                bias_correction2: 1.0,
-                ..Default::default()
-            },
-        });
-        assert_eq!(&b[..8], &[1, 0, 0, 0, 1, 2, 3, 4]);
-        assert_eq!(&b[28..], &1.0f32.to_le_bytes());
-        // Blocks shorter than 8 words leave the rest zero (only their size is pushed).
-        let r = push_bytes(RangePush {
-            n: 7,
-            first: 9,
-            ..Default::default()
-        });
-        assert_eq!(&r[..8], &[7, 0, 0, 0, 9, 0, 0, 0]);
-        assert!(r[8..].iter().all(|&x| x == 0));
     }
 }

@@ -15,8 +15,10 @@
 #![deny(unsafe_code)]
 
 mod backend;
+mod buffers;
 pub mod device;
 mod error;
+mod passes;
 mod raw;
 
 pub use backend::{VulkanBackend, VulkanOptions};

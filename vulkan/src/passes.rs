@@ -1,0 +1,256 @@
+//! The compute passes of one submission: the pipelines of the entry points, push-constant
+//! bytes, dispatches cut to the device's workgroup-count limit, and [`Passes`], which records
+//! the per-sample forward and backward and the checked Adam update of a step (see the order
+//! of the passes in [`crate::VulkanBackend`]'s module documentation).
+
+use crate::buffers::{grad_bindings, param_bindings, GroupBuffers};
+use crate::error::VulkanError;
+use crate::raw::{Buffer, Pipeline, Recorder, Set};
+use crate::WORKGROUP_SIZE;
+use himap_core::adam::AdamStep;
+use himap_core::gpu_abi::{AdamPush, LossCheckPush, PushWords, RangePush, SamplePush};
+use himap_core::model::{PerGroup, NUM_GROUPS};
+
+pub(crate) struct Pipelines {
+    pub(crate) sample_forward: Pipeline,
+    pub(crate) ray_train: Pipeline,
+    pub(crate) sample_backward: Pipeline,
+    pub(crate) ray_render: Pipeline,
+    pub(crate) pixel_rays: Pipeline,
+    pub(crate) pixel_train: Pipeline,
+    pub(crate) adam: Pipeline,
+    pub(crate) loss_check: Pipeline,
+    pub(crate) adam_check: Pipeline,
+    pub(crate) sdf: Pipeline,
+    pub(crate) color: Pipeline,
+}
+
+pub(crate) fn push_bytes(p: impl PushWords) -> [u8; 32] {
+    let words = p.words();
+    let mut b = [0u8; 32];
+    for (i, w) in words.iter().enumerate() {
+        b[4 * i..4 * i + 4].copy_from_slice(&w.to_le_bytes());
+    }
+    b
+}
+
+/// Items per dispatch and the dispatches covering `n` items: `(first, count, groups)`.
+pub(crate) fn chunks(n: usize, max_groups: u32) -> Vec<(u32, u32, u32)> {
+    let per = max_groups as usize * WORKGROUP_SIZE as usize;
+    let mut out = Vec::new();
+    let mut first = 0;
+    while first < n {
+        let count = (n - first).min(per);
+        out.push((
+            first as u32,
+            count as u32,
+            count.div_ceil(WORKGROUP_SIZE as usize) as u32,
+        ));
+        first += count;
+    }
+    out
+}
+
+/// Dispatches `pipeline` over `n` items, one per invocation, in chunks within the
+/// workgroup-count limit; `push(first, count)` gives a chunk's push constants (the first
+/// `pipeline.push_size()` bytes are used).
+pub(crate) fn dispatch_items<'a>(
+    r: &mut Recorder<'a>,
+    pipeline: &'a Pipeline,
+    set: &Set<'a>,
+    n: usize,
+    max_groups: u32,
+    push: impl Fn(u32, u32) -> [u8; 32],
+) {
+    for (first, count, wg) in chunks(n, max_groups) {
+        let p = push(first, count);
+        r.dispatch(pipeline, set, &p[..pipeline.push_size()], wg);
+    }
+}
+
+/// Push constants of the entry points that take only the item range.
+pub(crate) fn range_push(first: u32, count: u32) -> [u8; 32] {
+    push_bytes(RangePush {
+        n: count,
+        first,
+        ..Default::default()
+    })
+}
+
+/// What the passes of one submission share: pipelines, model buffers, and the batch's rays
+/// and sample records.
+pub(crate) struct Passes<'a> {
+    pub(crate) pipelines: &'a Pipelines,
+    pub(crate) groups: &'a PerGroup<GroupBuffers>,
+    pub(crate) model_words: &'a Buffer,
+    pub(crate) rays: &'a Buffer,
+    pub(crate) samples: &'a Buffer,
+    /// The step's non-finite count.
+    pub(crate) status: &'a Buffer,
+    /// Sample records of the batch (rays x samples per ray).
+    pub(crate) records: usize,
+    pub(crate) max_groups: u32,
+}
+
+impl<'a> Passes<'a> {
+    /// Zeroes every gradient buffer and the step's non-finite count.
+    pub(crate) fn zero_grads(&self, r: &mut Recorder<'a>) {
+        for p in self.groups.iter().flat_map(|g| g.parts.iter()) {
+            r.zero(&p.grad);
+        }
+        r.zero(self.status);
+        r.barrier();
+    }
+
+    /// Pass 1: `sample_forward_cs` over every sample record.
+    pub(crate) fn sample_forward(
+        &self,
+        r: &mut Recorder<'a>,
+        seed: u32,
+        jitter: bool,
+    ) -> Result<(), VulkanError> {
+        let pipeline = &self.pipelines.sample_forward;
+        let set = r.bind(
+            pipeline,
+            &[
+                &[self.model_words][..],
+                &param_bindings(self.groups),
+                &[self.rays, self.samples],
+            ]
+            .concat(),
+        )?;
+        dispatch_items(
+            r,
+            pipeline,
+            &set,
+            self.records,
+            self.max_groups,
+            |first, count| {
+                push_bytes(SamplePush {
+                    n: count,
+                    first,
+                    seed,
+                    jitter: jitter as u32,
+                })
+            },
+        );
+        r.barrier();
+        Ok(())
+    }
+
+    /// Pass 3: `sample_backward_cs` over every sample record.
+    pub(crate) fn sample_backward(&self, r: &mut Recorder<'a>) -> Result<(), VulkanError> {
+        let pipeline = &self.pipelines.sample_backward;
+        let set = r.bind(
+            pipeline,
+            &[
+                &[self.model_words][..],
+                &param_bindings(self.groups),
+                &grad_bindings(self.groups),
+                &[self.rays, self.samples],
+            ]
+            .concat(),
+        )?;
+        dispatch_items(r, pipeline, &set, self.records, self.max_groups, range_push);
+        r.barrier();
+        Ok(())
+    }
+
+    /// The step's checks and update: `loss_check_cs` over the `n` result records of
+    /// `stride` floats (loss fields at `losses`), then `adam_check_cs` and `adam_cs` over
+    /// every part of every group (`adam_cs` does nothing when a check counted anything).
+    pub(crate) fn checked_adam(
+        &self,
+        r: &mut Recorder<'a>,
+        steps: &[AdamStep; NUM_GROUPS],
+        results: &'a Buffer,
+        n: usize,
+        stride: usize,
+        losses: (usize, usize),
+    ) -> Result<(), VulkanError> {
+        let pipeline = &self.pipelines.loss_check;
+        let set = r.bind(pipeline, &[results, self.status])?;
+        dispatch_items(r, pipeline, &set, n, self.max_groups, |first, count| {
+            push_bytes(LossCheckPush {
+                n: count,
+                first,
+                stride: stride as u32,
+                loss_a: losses.0 as u32,
+                loss_b: losses.1 as u32,
+                ..Default::default()
+            })
+        });
+        r.barrier();
+        self.adam(r, steps, &self.pipelines.adam_check)?;
+        r.barrier();
+        self.adam(r, steps, &self.pipelines.adam)
+    }
+
+    /// `pipeline` (`adam_cs` or `adam_check_cs`) over every part of every group.
+    pub(crate) fn adam(
+        &self,
+        r: &mut Recorder<'a>,
+        steps: &[AdamStep; NUM_GROUPS],
+        pipeline: &'a Pipeline,
+    ) -> Result<(), VulkanError> {
+        for (g, s) in self.groups.iter().zip(steps.iter()) {
+            for part in &g.parts {
+                let set = r.bind(
+                    pipeline,
+                    &[&part.params, &part.m, &part.v, &part.grad, self.status],
+                )?;
+                dispatch_items(
+                    r,
+                    pipeline,
+                    &set,
+                    part.len,
+                    self.max_groups,
+                    |first, count| {
+                        push_bytes(AdamPush {
+                            n: count,
+                            first,
+                            step: *s,
+                        })
+                    },
+                );
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chunks_cover_every_item_once() {
+        assert!(chunks(0, 10).is_empty());
+        assert_eq!(chunks(1, 10), vec![(0, 1, 1)]);
+        assert_eq!(chunks(64 * 10, 10), vec![(0, 640, 10)]);
+        assert_eq!(chunks(641, 10), vec![(0, 640, 10), (640, 1, 1)]);
+        assert_eq!(chunks(130, 1), vec![(0, 64, 1), (64, 64, 1), (128, 2, 1)]);
+    }
+
+    #[test]
+    fn push_bytes_are_little_endian_words() {
+        let b = push_bytes(AdamPush {
+            n: 1,
+            first: 0x0403_0201,
+            step: AdamStep {
+                bias_correction2: 1.0,
+                ..Default::default()
+            },
+        });
+        assert_eq!(&b[..8], &[1, 0, 0, 0, 1, 2, 3, 4]);
+        assert_eq!(&b[28..], &1.0f32.to_le_bytes());
+        // Blocks shorter than 8 words leave the rest zero (only their size is pushed).
+        let r = push_bytes(RangePush {
+            n: 7,
+            first: 9,
+            ..Default::default()
+        });
+        assert_eq!(&r[..8], &[7, 0, 0, 0, 9, 0, 0, 0]);
+        assert!(r[8..].iter().all(|&x| x == 0));
+    }
+}
