@@ -299,67 +299,8 @@ where
             fmt_opt(fin.depth_l1_cm, 2)
         );
     }
-    // mesh
-    let beta = {
-        let mut b = [0.0f32; 1];
-        backend.read_params(Group::Beta, &mut b)?;
-        b[0]
-    };
-    let mesh_level = match cfg.eval.mesh_level {
-        Some(l) => l,
-        None => {
-            let lk = ek.resized((ek.width / 2).max(1), (ek.height / 2).max(1));
-            rendered_surface_level(&mut backend, &lk, &poses, 8)?
-                .unwrap_or_else(|| cfg.surface_level(beta))
-        }
-    };
-    // The observed scene: the mapped views' rendered depth bounds the extraction region
-    // (mesh_full.ply) and culls it to what some view saw (mesh.ply).
-    let views = observed_views(&mut backend, &k, &poses, OBSERVED_VIEWS)?;
-    let region = observed_region(&views, aabb, 2.0 * cfg.eval.mesh_resolution).unwrap_or(aabb);
-    let full = map_mesh(&mut backend, region, cfg.eval.mesh_resolution, mesh_level)?;
-    full.write_ply(&opts.out.join("mesh_full.ply"))?;
-    let mesh = crate::eval::cull_mesh(
-        &full,
-        views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
-        Some(cfg.eval.observed_margin),
-    );
-    if opts.progress {
-        eprintln!(
-            "mesh: {} faces over the observed region, {} seen by the mapped views (mesh.ply; \
-             mesh_full.ply keeps all)",
-            full.faces.len(),
-            mesh.faces.len()
-        );
-    }
-    let mesh_path = opts.out.join("mesh.ply");
-    mesh.write_ply(&mesh_path)?;
-    let has_gt = opts.dataset.join("gt_mesh.ply").is_file() || ds.has_depth();
-    let (mesh_metrics, mesh_gt, mesh_err) = if has_gt && !mesh.faces.is_empty() {
-        use crate::eval::{Culling, EvalOptions};
-        let gt_mesh = opts.dataset.join("gt_mesh.ply").is_file();
-        let culling = match cfg.eval.cull.as_str() {
-            "none" => Culling::None,
-            "frustum" => Culling::Frustum,
-            "occlusion" => Culling::FrustumOcclusion,
-            _ if gt_mesh => Culling::None,
-            _ => Culling::Frustum,
-        };
-        let eo = EvalOptions {
-            n_samples: cfg.eval.mesh_samples,
-            culling,
-            dataset: cfg.dataset.clone(),
-            ..EvalOptions::default()
-        };
-        match crate::eval::eval_report(&mesh_path, &opts.dataset, &eo) {
-            Ok(r) => (Some(r.metrics), Some(r.gt_kind), None),
-            Err(e) => (None, None, Some(format!("{e:#}"))),
-        }
-    } else if has_gt {
-        (None, None, Some("empty reconstruction".to_string()))
-    } else {
-        (None, None, None)
-    };
+    let surface = write_meshes(&mut backend, opts, &ek, &k, &poses, aabb)?;
+    let (mesh_metrics, mesh_gt, mesh_err) = evaluate_mesh(opts, ds, &surface);
 
     let data = backend.export()?;
     save_map(&opts.out.join("map.safetensors"), cfg, &data)?;
@@ -389,10 +330,10 @@ where
         mesh: mesh_metrics,
         mesh_ground_truth: mesh_gt,
         mesh_error: mesh_err,
-        mesh_faces: mesh.faces.len(),
-        mesh_full_faces: full.faces.len(),
-        mesh_level,
-        beta,
+        mesh_faces: surface.faces,
+        mesh_full_faces: surface.full_faces,
+        mesh_level: surface.level,
+        beta: surface.beta,
         seconds_total: t_start.elapsed().as_secs_f64(),
         seconds_mapping: mapping_s,
         seconds_per_iteration: mapping_s / iterations.max(1) as f64,
@@ -403,6 +344,114 @@ where
     let sp = opts.out.join("summary.json");
     crate::atomic::write_bytes_atomic(&sp, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     Ok(summary)
+}
+
+/// What [`write_meshes`] wrote.
+struct SurfaceOutputs {
+    /// `mesh.ply`: the surface culled to what the mapped views saw.
+    path: std::path::PathBuf,
+    faces: usize,
+    /// Faces of `mesh_full.ply` (the whole observed region, uncut).
+    full_faces: usize,
+    /// The field level the surface was extracted at (configured or rendered).
+    level: f32,
+    beta: f32,
+}
+
+/// Extracts the final map's surface: the level from the configuration or from the rendered
+/// depth of the mapped views, the observed region from their depth (`mesh_full.ply`) and the
+/// part some view saw (`mesh.ply`).
+fn write_meshes<B: MapBackend>(
+    backend: &mut B,
+    opts: &MapOptions,
+    ek: &Intrinsics,
+    k: &Intrinsics,
+    poses: &[Pose],
+    aabb: Aabb,
+) -> anyhow::Result<SurfaceOutputs>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let cfg = &opts.config;
+    let beta = {
+        let mut b = [0.0f32; 1];
+        backend.read_params(Group::Beta, &mut b)?;
+        b[0]
+    };
+    let level = match cfg.eval.mesh_level {
+        Some(l) => l,
+        None => {
+            let lk = ek.resized((ek.width / 2).max(1), (ek.height / 2).max(1));
+            rendered_surface_level(backend, &lk, poses, 8)?
+                .unwrap_or_else(|| cfg.surface_level(beta))
+        }
+    };
+    let views = observed_views(backend, k, poses, OBSERVED_VIEWS)?;
+    let region = observed_region(&views, aabb, 2.0 * cfg.eval.mesh_resolution).unwrap_or(aabb);
+    let full = map_mesh(backend, region, cfg.eval.mesh_resolution, level)?;
+    full.write_ply(&opts.out.join("mesh_full.ply"))?;
+    let mesh = crate::eval::cull_mesh(
+        &full,
+        views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
+        Some(cfg.eval.observed_margin),
+    );
+    if opts.progress {
+        eprintln!(
+            "mesh: {} faces over the observed region, {} seen by the mapped views (mesh.ply; \
+             mesh_full.ply keeps all)",
+            full.faces.len(),
+            mesh.faces.len()
+        );
+    }
+    let path = opts.out.join("mesh.ply");
+    mesh.write_ply(&path)?;
+    Ok(SurfaceOutputs {
+        path,
+        faces: mesh.faces.len(),
+        full_faces: full.faces.len(),
+        level,
+        beta,
+    })
+}
+
+/// The mesh metrics against the dataset's ground truth (its `gt_mesh.ply`, else its depth)
+/// with the configured culling: metrics, the kind of ground truth, or why there are none
+/// (`(None, None, None)` when the dataset has no ground truth).
+fn evaluate_mesh(
+    opts: &MapOptions,
+    ds: &dyn crate::dataset::Dataset,
+    surface: &SurfaceOutputs,
+) -> (
+    Option<crate::eval::MeshMetrics>,
+    Option<String>,
+    Option<String>,
+) {
+    use crate::eval::{Culling, EvalOptions};
+    let cfg = &opts.config;
+    let gt_mesh = opts.dataset.join("gt_mesh.ply").is_file();
+    if !gt_mesh && !ds.has_depth() {
+        return (None, None, None);
+    }
+    if surface.faces == 0 {
+        return (None, None, Some("empty reconstruction".to_string()));
+    }
+    let culling = match cfg.eval.cull.as_str() {
+        "none" => Culling::None,
+        "frustum" => Culling::Frustum,
+        "occlusion" => Culling::FrustumOcclusion,
+        _ if gt_mesh => Culling::None,
+        _ => Culling::Frustum,
+    };
+    let eo = EvalOptions {
+        n_samples: cfg.eval.mesh_samples,
+        culling,
+        dataset: cfg.dataset.clone(),
+        ..EvalOptions::default()
+    };
+    match crate::eval::eval_report(&surface.path, &opts.dataset, &eo) {
+        Ok(r) => (Some(r.metrics), Some(r.gt_kind), None),
+        Err(e) => (None, None, Some(format!("{e:#}"))),
+    }
 }
 
 /// A mapping failure mid-run (`at`: the frame or the final update): the backend's own error
