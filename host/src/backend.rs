@@ -631,17 +631,21 @@ impl ParallelCpuBackend {
                 items
                     .into_par_iter()
                     .map(|(p, m, v, sum, mut blocks)| {
-                        let mut ok = true;
-                        for i in 0..p.len() {
-                            let mut q = 0i64;
-                            for b in blocks.iter_mut() {
-                                q = q.wrapping_add(b[i]);
-                                b[i] = 0;
+                        // Worker by worker over the whole block, then the check: loops the
+                        // compiler vectorises (integer sums: the same in any order).
+                        sum.fill(0);
+                        for b in blocks.iter_mut() {
+                            for (s, x) in sum.iter_mut().zip(b.iter_mut()) {
+                                *s = s.wrapping_add(*x);
+                                *x = 0;
                             }
-                            sum[i] = q;
-                            ok &= hw.update_is_finite(p[i], m[i], v[i], fixed::from_fixed(q));
                         }
-                        ok
+                        p.iter().zip(m).zip(v).zip(sum.iter()).fold(
+                            true,
+                            |ok, (((&p, &m), &v), &q)| {
+                                ok & hw.update_is_finite(p, m, v, fixed::from_fixed(q))
+                            },
+                        )
                     })
                     .reduce(|| true, |a, b| a & b)
             });
@@ -670,8 +674,8 @@ impl ParallelCpuBackend {
                 .collect();
             self.pool.install(|| {
                 items.into_par_iter().for_each(|(((p, m), v), sum)| {
-                    for i in 0..p.len() {
-                        hw.update(&mut p[i], &mut m[i], &mut v[i], fixed::from_fixed(sum[i]));
+                    for (((p, m), v), &q) in p.iter_mut().zip(m).zip(v).zip(sum) {
+                        hw.update(p, m, v, fixed::from_fixed(q));
                     }
                 });
             });
