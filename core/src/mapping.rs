@@ -50,7 +50,12 @@ pub struct WindowImages<'a, P: SlotPixels + ?Sized> {
 /// Read access to slot-major packed RGBA8 pixels (implemented for `[u32]`; a GPU backend
 /// implements it over its storage buffer).
 pub trait SlotPixels {
+    /// Whether [`Self::prefetch`] does anything (see [`FrameImages::PREFETCH`]).
+    const PREFETCH: bool = false;
     fn pixel(&self, i: usize) -> u32;
+    /// A cache hint: pixel `i` will be read soon. No value changes; the default does nothing.
+    #[inline(always)]
+    fn prefetch(&self, _i: usize) {}
 }
 
 impl SlotPixels for [u32] {
@@ -64,7 +69,19 @@ impl SlotPixels for [u32] {
     }
 }
 
+impl<P: SlotPixels + ?Sized> WindowImages<'_, P> {
+    /// Index of texel `(x, y)` of window frame `frame` in `pixels`.
+    #[inline(always)]
+    fn index(&self, frame: usize, x: u32, y: u32) -> usize {
+        let f = if frame < MAX_WINDOW { frame } else { 0 };
+        let slot = self.slots[f] as usize;
+        (slot * self.height as usize + y as usize) * self.width as usize + x as usize
+    }
+}
+
 impl<P: SlotPixels + ?Sized> FrameImages for WindowImages<'_, P> {
+    const PREFETCH: bool = P::PREFETCH;
+
     #[inline(always)]
     fn size(&self) -> (u32, u32) {
         (self.width, self.height)
@@ -72,10 +89,15 @@ impl<P: SlotPixels + ?Sized> FrameImages for WindowImages<'_, P> {
 
     #[inline(always)]
     fn texel(&self, frame: usize, x: u32, y: u32) -> [f32; 3] {
-        let f = if frame < MAX_WINDOW { frame } else { 0 };
-        let slot = self.slots[f] as usize;
-        let i = (slot * self.height as usize + y as usize) * self.width as usize + x as usize;
-        unpack_rgba8(self.pixels.pixel(i))
+        unpack_rgba8(self.pixels.pixel(self.index(frame, x, y)))
+    }
+
+    /// Names the first and the last texel of the span (a patch row spans at most a few
+    /// cache lines; the hardware's adjacent-line fetch covers the middle).
+    #[inline(always)]
+    fn prefetch_row(&self, frame: usize, y: u32, x0: u32, x1: u32) {
+        self.pixels.prefetch(self.index(frame, x0, y));
+        self.pixels.prefetch(self.index(frame, x1, y));
     }
 }
 

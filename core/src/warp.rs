@@ -86,8 +86,37 @@ pub const MAX_HALF: u32 = (PATCH / 2) as u32;
 /// frame has the same `size() = (width, height)`, and `x < width`, `y < height` always hold
 /// in the calls [`warp_pixel`] makes.
 pub trait FrameImages {
+    /// Whether [`Self::prefetch_row`] does anything (a CPU's cache hint); when false
+    /// [`warp_pixel`] does not even compute the rows it would name.
+    const PREFETCH: bool = false;
     fn size(&self) -> (u32, u32);
     fn texel(&self, frame: usize, x: u32, y: u32) -> [f32; 3];
+    /// A cache hint: texels `x0..=x1` of row `y` of `frame` will be read soon (`x0 <= x1`,
+    /// all inside the image). No value changes; the default does nothing.
+    #[inline(always)]
+    fn prefetch_row(&self, _frame: usize, _y: u32, _x0: u32, _x1: u32) {}
+}
+
+/// Names to `images` the rows around the projected patch centre `(cu, cv)` of `frame` that
+/// the warp of a patch of half size `half` will read (a hint; see
+/// [`FrameImages::prefetch_row`]).
+#[inline(always)]
+fn prefetch_patch<I: FrameImages + ?Sized>(images: &I, frame: usize, cu: f32, cv: f32, half: i32) {
+    let (w, h) = images.size();
+    // The patch warps to about its own size; a few pixels more cover moderate scale changes
+    // and the bilinear neighbours. `cu`, `cv` are finite and inside the margins (valid
+    // centre), so the casts are exact floors of in-range values.
+    let r = half + 3;
+    let (u, v) = (cu as i32, cv as i32);
+    let x0 = (u - r).max(0) as u32;
+    let x1 = ((u + r) as u32).min(w - 1);
+    let y0 = (v - r).max(0) as u32;
+    let y1 = ((v + r) as u32).min(h - 1);
+    let mut y = y0;
+    while y <= y1 {
+        images.prefetch_row(frame, y, x0, x1);
+        y += 1;
+    }
 }
 
 /// [`FrameImages`] over one flat buffer: frame-major, then row-major, RGB interleaved
@@ -371,6 +400,8 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     // Pass 1: validity of every pair from the centre point.
     let mut mask = 0u32;
     let mut count = 0u32;
+    // Projected centres, kept for the cache hints only.
+    let mut centres = [[0.0f32; 2]; MAX_WINDOW];
     let mut j = 0;
     while j < n {
         if j != src {
@@ -379,6 +410,9 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
             if centre_valid(pu, pv, z, w, h, cfg.margin) {
                 mask |= 1u32 << j;
                 count += 1;
+                if I::PREFETCH {
+                    centres[j] = [pu, pv];
+                }
             }
         }
         j += 1;
@@ -403,11 +437,27 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
 
     let mut loss = 0.0f32;
     let mut d_depth = 0.0f32;
+    if I::PREFETCH && mask != 0 {
+        let first = mask.trailing_zeros() as usize;
+        prefetch_patch(images, first, centres[first][0], centres[first][1], half);
+    }
     j = 0;
     while j < n {
         if mask & (1u32 << j) == 0 {
             j += 1;
             continue;
+        }
+        if I::PREFETCH {
+            // The next valid view's texels load while this one is computed.
+            let later = if j + 1 < 32 {
+                mask & (u32::MAX << (j + 1))
+            } else {
+                0
+            };
+            if later != 0 {
+                let next = later.trailing_zeros() as usize;
+                prefetch_patch(images, next, centres[next][0], centres[next][1], half);
+            }
         }
         let pose_j = poses.pose(j);
 

@@ -11,7 +11,7 @@ use std::sync::{Mutex, MutexGuard};
 
 use himap_core::adam::{AdamConfig, AdamStep};
 use himap_core::fixed;
-use himap_core::mapping::{pixel_train, PixelResult, WindowImages, WindowView};
+use himap_core::mapping::{pixel_train, PixelResult, SlotPixels, WindowImages, WindowView};
 use himap_core::mlp::{MlpScratch, MAX_WIDTH};
 use himap_core::model::{
     color_at, ray_forward_taped, ray_train, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout,
@@ -101,7 +101,47 @@ impl AdamHw {
             & himap_core::adam::is_finite(m)
             & himap_core::adam::is_finite(v)
     }
+
+    /// Whether this step's constants allow [`Self::within_bound`] to stand in for
+    /// [`Self::update_is_finite`]: decays in [0, 1], `eps > 0`, a bias correction that is not
+    /// tiny, and a step so small (against `eps`, and in itself) that no parameter within the
+    /// bound can leave the finite range (see [`Self::within_bound`]).
+    pub fn bound_applies(&self) -> bool {
+        let unit = |x: f32| (0.0..=1.0).contains(&x);
+        let ratio = self.step_size.abs() as f64 * 2.0 * BOUND_M as f64 / self.eps as f64;
+        unit(self.beta1)
+            && unit(self.beta2)
+            && unit(self.one_minus_beta1)
+            && unit(self.one_minus_beta2)
+            && self.eps > 0.0
+            && self.eps.is_finite()
+            && self.sqrt_bc2 >= 1e-10
+            && self.sqrt_bc2.is_finite()
+            && ((BOUND_P as f64 + ratio) * 1.01) < 1e38
+            && self.step_size.abs() as f64 * 2.0 * BOUND_M as f64 * 1.01 < 1e37
+    }
+
+    /// A sufficient condition for [`Self::update_is_finite`] when [`Self::bound_applies`]:
+    /// `|param| < 1e30`, `|m| < 1e15`, `0 <= v < 1e30`, `|grad| < 1e15` (false for NaN).
+    /// Then `|m'| <= |m| + |grad| < 2e15`, `v' <= v + grad^2 < 2e30`, the denominator is at
+    /// least `eps` and at most `sqrt(2e30) / 1e-10`, `step * m'` stays below 1e38, and the
+    /// parameter moves by at most `step * 2e15 / eps`, which `bound_applies` keeps (with a
+    /// margin for rounding) below `1e38 - 1e30`. Comparisons only: the check pass costs a
+    /// fraction of the update's square root and division, and the exact check runs only
+    /// where the bound does not hold, so the decision is the exact check's.
+    #[inline(always)]
+    pub fn within_bound(param: f32, m: f32, v: f32, grad: f32) -> bool {
+        (param.abs() < BOUND_P)
+            & (m.abs() < BOUND_M)
+            & (0.0..BOUND_P).contains(&v)
+            & (grad.abs() < BOUND_M)
+    }
 }
+
+/// Magnitude bounds of [`AdamHw::within_bound`] (parameters and second moments; first moments
+/// and gradients).
+const BOUND_P: f32 = 1e30;
+const BOUND_M: f32 = 1e15;
 
 /// Per [`BLOCK`] of each group, whether any Adam moment in it is non-zero.
 fn live_blocks(data: &ModelData) -> [Vec<bool>; NUM_GROUPS] {
@@ -312,6 +352,41 @@ impl ModelGradSink for WorkerSink<'_> {
     }
 }
 
+/// The window's RGBA8 slot images with the CPU's cache hint: the warping loss names the
+/// rows of the next view's patch while it computes the current one (values as `[u32]`'s).
+struct HostPixels<'a>(&'a [u32]);
+
+impl SlotPixels for HostPixels<'_> {
+    const PREFETCH: bool = true;
+
+    #[inline(always)]
+    fn pixel(&self, i: usize) -> u32 {
+        self.0.pixel(i)
+    }
+
+    #[inline(always)]
+    fn prefetch(&self, i: usize) {
+        if let Some(row) = self.0.get(i..) {
+            prefetch_line(row);
+        }
+    }
+}
+
+/// Asks the CPU to bring the cache line of `row[0]` towards its L1 cache (a hint: no effect
+/// on any value, nothing on other architectures).
+#[inline(always)]
+fn prefetch_line<T>(row: &[T]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        // SAFETY: prefetching is a hint that never faults; the address is `row`'s first
+        // element.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(row.as_ptr().cast::<i8>()) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = row;
+}
+
 /// Asks the CPU to bring the first two cache lines of `row` towards its L1 cache (a hint: no
 /// effect on any value, nothing on other architectures).
 #[inline(always)]
@@ -356,18 +431,64 @@ pub fn to_fixed_host(g: f32) -> i64 {
     }
 }
 
-/// `dst[i] += to_fixed(g * xs[i])` for every i (a decoder weight row): one branch-free pass
-/// when every contribution is small and finite (the norm), [`fixed::to_fixed`] otherwise.
+/// `dst[i] += to_fixed(g * xs[i])` for every i (a decoder weight row or a grid corner's
+/// channels). With AVX-512 (DQ + VL) 8 contributions at a time through the CPU's own
+/// float-to-int64 conversion ([`add_scaled_row_avx512`]); otherwise one branch-free pass when
+/// every contribution is small and finite (the norm), [`fixed::to_fixed`] otherwise.
 #[inline(always)]
 fn add_scaled_row(dst: &mut [i64], g: f32, xs: &[f32]) {
     #[cfg(target_arch = "x86_64")]
     {
+        if std::arch::is_x86_feature_detected!("avx512dq")
+            && std::arch::is_x86_feature_detected!("avx512vl")
+        {
+            // SAFETY: the CPU supports AVX-512 F, DQ and VL (DQ implies F; checked above).
+            return unsafe { add_scaled_row_avx512(dst, g, xs) };
+        }
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU supports AVX2 (checked above); the function is plain safe Rust.
             return unsafe { add_scaled_row_avx2(dst, g, xs) };
         }
     }
     add_scaled_row_generic(dst, g, xs)
+}
+
+/// [`add_scaled_row`] in AVX-512 lanes, every case of [`fixed::to_fixed`] branch-free: the
+/// product `g * x` (the same f32 product), NaN lanes masked to 0, clamped to
+/// `+-MAX_CONTRIBUTION` (`min`/`max` of a non-NaN value are exact), scaled by `2^40` (a power
+/// of two: exact, at most 2^62), then `vcvtps2qq` with round-to-nearest-even given explicitly
+/// (the value is exact, so this is `to_fixed`'s rounding of the same number). Masked loads and
+/// stores take the tail of a row. Tested equal to `to_fixed` on random, tie, huge, subnormal
+/// and non-finite contributions.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl")]
+fn add_scaled_row_avx512(dst: &mut [i64], g: f32, xs: &[f32]) {
+    use std::arch::x86_64::*;
+    let n = dst.len().min(xs.len());
+    let gv = _mm256_set1_ps(g);
+    let hi = _mm256_set1_ps(fixed::MAX_CONTRIBUTION);
+    let lo = _mm256_set1_ps(-fixed::MAX_CONTRIBUTION);
+    let scale = _mm256_set1_ps(fixed::SCALE);
+    let mut i = 0;
+    while i < n {
+        let left = n - i;
+        let m: __mmask8 = if left >= 8 { 0xff } else { (1u8 << left) - 1 };
+        // SAFETY: the mask enables only lanes i..i + min(8, n - i), all within both slices;
+        // masked-off lanes are neither read nor written.
+        unsafe {
+            let x = _mm256_maskz_loadu_ps(m, xs.as_ptr().add(i));
+            let p = _mm256_mul_ps(gv, x);
+            let ordered = _mm256_cmp_ps_mask::<_CMP_ORD_Q>(p, p) & m;
+            let c = _mm256_max_ps(_mm256_min_ps(p, hi), lo);
+            let q = _mm512_maskz_cvt_roundps_epi64::<
+                { _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC },
+            >(ordered, _mm256_mul_ps(c, scale));
+            let d = dst.as_mut_ptr().add(i);
+            let sum = _mm512_add_epi64(_mm512_maskz_loadu_epi64(m, d), q);
+            _mm512_mask_storeu_epi64(d, m, sum);
+        }
+        i += 8;
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -479,7 +600,7 @@ impl ParallelCpuBackend {
             width: self.store.width,
             height: self.store.height,
             slots,
-            pixels: &self.images[..],
+            pixels: &HostPixels(&self.images[..]),
         };
         let window = WindowView {
             k: batch.k,
@@ -600,6 +721,7 @@ impl ParallelCpuBackend {
         let mut finite = true;
         for g in 0..NUM_GROUPS {
             let hw = AdamHw::new(&AdamStep::new(&self.adam[g], t));
+            let bound = hw.bound_applies();
             let run = &mut self.run[g];
             run.clone_from(&self.live[g]);
             for w in workers.iter_mut() {
@@ -640,12 +762,22 @@ impl ParallelCpuBackend {
                                 *x = 0;
                             }
                         }
-                        p.iter().zip(m).zip(v).zip(sum.iter()).fold(
-                            true,
-                            |ok, (((&p, &m), &v), &q)| {
-                                ok & hw.update_is_finite(p, m, v, fixed::from_fixed(q))
-                            },
-                        )
+                        // The bound (comparisons) first; the exact check (Adam's own
+                        // operations) only where it does not settle it: the same decision.
+                        let bounded = bound
+                            && p.iter().zip(m).zip(v).zip(sum.iter()).fold(
+                                true,
+                                |ok, (((&p, &m), &v), &q)| {
+                                    ok & AdamHw::within_bound(p, m, v, fixed::from_fixed(q))
+                                },
+                            );
+                        bounded
+                            || p.iter().zip(m).zip(v).zip(sum.iter()).fold(
+                                true,
+                                |ok, (((&p, &m), &v), &q)| {
+                                    ok & hw.update_is_finite(p, m, v, fixed::from_fixed(q))
+                                },
+                            )
                     })
                     .reduce(|| true, |a, b| a & b)
             });
@@ -880,17 +1012,142 @@ mod tests {
         }
     }
 
-    /// Rows with large or non-finite contributions take the exact path.
+    /// The AVX-512 row conversion equals the core's on every kind of contribution: random
+    /// magnitudes over the whole exponent range, exact ties at the quantum, the clamp,
+    /// subnormals and non-finite values, with every row length up to 40 (the masked tail).
+    #[test]
+    fn avx512_rows_add_the_core_conversions() {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if !(std::arch::is_x86_feature_detected!("avx512dq")
+                && std::arch::is_x86_feature_detected!("avx512vl"))
+            {
+                eprintln!("skipped: this CPU has no AVX-512 DQ/VL (the AVX2 path is tested)");
+                return;
+            }
+            let mut rng = himap_core::rng::SplitMix::new(11);
+            let mut specials = vec![
+                0.0f32,
+                -0.0,
+                f32::NAN,
+                -f32::NAN,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                f32::MIN_POSITIVE * 0.5,
+                fixed::MAX_CONTRIBUTION,
+                fixed::MAX_CONTRIBUTION * 1.5,
+                -fixed::MAX_CONTRIBUTION * 3.0,
+                2048.0,
+                -2047.9,
+                1e30,
+            ];
+            specials.extend((0..64).map(|k| (k as f32 + 0.5) * fixed::INV_SCALE));
+            specials.extend((0..64).map(|k| -(k as f32 + 0.5) * fixed::INV_SCALE));
+            for trial in 0..4000 {
+                let n = trial % 41;
+                let xs: Vec<f32> = (0..n)
+                    .map(|_| {
+                        if rng.unit() < 0.2 {
+                            specials[(rng.unit() * specials.len() as f32) as usize % specials.len()]
+                        } else {
+                            let e = (rng.unit() * 80.0) as i32 - 60;
+                            (rng.unit() - 0.5) * 2f32.powi(e)
+                        }
+                    })
+                    .collect();
+                let g = match trial % 5 {
+                    0 => 1.0,
+                    1 => (rng.unit() - 0.5) * 2f32.powi((rng.unit() * 40.0) as i32 - 30),
+                    2 => specials[trial % specials.len()],
+                    _ => rng.unit() - 0.5,
+                };
+                let start: Vec<i64> = (0..n).map(|i| (i as i64 - 20) << 41).collect();
+                let mut dst = start.clone();
+                // SAFETY: checked above that the CPU has AVX-512 DQ and VL.
+                unsafe { add_scaled_row_avx512(&mut dst, g, &xs) };
+                for ((d, s), &x) in dst.iter().zip(&start).zip(&xs) {
+                    assert_eq!(*d, s.wrapping_add(fixed::to_fixed(g * x)), "g {g} x {x}");
+                }
+            }
+        }
+    }
+
+    /// Rows with large or non-finite contributions take the exact path, in the dispatched
+    /// form (AVX-512 where present) and in the portable one (AVX2 / SSE).
     #[test]
     fn rows_add_the_core_conversions() {
         let xs: Vec<f32> = (0..40).map(|i| (i as f32 - 17.3) * 0.37).collect();
         for g in [1e-7f32, 0.3, -5.0, 300.0, f32::NAN, 1e5] {
             let mut dst = vec![7i64; xs.len()];
+            let mut portable = dst.clone();
             add_scaled_row(&mut dst, g, &xs);
-            for (d, &x) in dst.iter().zip(&xs) {
+            add_scaled_row_generic(&mut portable, g, &xs);
+            for ((d, p), &x) in dst.iter().zip(&portable).zip(&xs) {
                 assert_eq!(*d, 7 + fixed::to_fixed(g * x), "g {g} x {x}");
+                assert_eq!(*p, *d, "g {g} x {x}");
             }
         }
+    }
+
+    /// Wherever the cheap bound settles the finiteness check, the exact check agrees: random
+    /// values and the bound's corners (just inside every limit, both signs), over learning
+    /// rates, `eps` and steps that let the bound apply; an overflowing learning rate does not.
+    #[test]
+    fn adam_bound_implies_the_exact_check() {
+        let below = |x: f32| f32::from_bits(x.to_bits() - 1);
+        let mut rng = himap_core::rng::SplitMix::new(5);
+        let mut applied = 0;
+        for t in [1u32, 2, 10, 5000] {
+            for lr in [1e-3f32, 0.1, 10.0, 1e6, 1e24, 1e38] {
+                for eps in [1e-8f32, 1e-15, 1e-30, 1e5] {
+                    let cfg = AdamConfig {
+                        eps,
+                        ..AdamConfig::new(lr)
+                    };
+                    let hw = AdamHw::new(&AdamStep::new(&cfg, t));
+                    if !hw.bound_applies() {
+                        continue;
+                    }
+                    applied += 1;
+                    let (bp, bm) = (below(BOUND_P), below(BOUND_M));
+                    let mut cases = vec![];
+                    for sp in [1.0f32, -1.0] {
+                        for sm in [1.0f32, -1.0] {
+                            for sg in [1.0f32, -1.0] {
+                                cases.push((sp * bp, sm * bm, below(BOUND_P), sg * bm));
+                                cases.push((sp * bp, sm * bm, 0.0, sg * bm));
+                                cases.push((sp * bp, 0.0, 0.0, sg * 1e-30));
+                            }
+                        }
+                    }
+                    for _ in 0..2000 {
+                        let e = |r: &mut himap_core::rng::SplitMix, top: f32| {
+                            (r.unit() - 0.5) * 2f32.powf(r.unit() * top.log2())
+                        };
+                        cases.push((
+                            e(&mut rng, BOUND_P),
+                            e(&mut rng, BOUND_M),
+                            e(&mut rng, BOUND_P).abs(),
+                            e(&mut rng, BOUND_M),
+                        ));
+                    }
+                    for (p, m, v, g) in cases {
+                        if AdamHw::within_bound(p, m, v, g) {
+                            assert!(
+                                hw.update_is_finite(p, m, v, g),
+                                "lr {lr} eps {eps} t {t}: {p} {m} {v} {g}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+        assert!(applied > 10, "the bound applied to {applied} settings only");
+        let huge = AdamHw::new(&AdamStep::new(&AdamConfig::new(1e38), 1));
+        assert!(!huge.bound_applies());
+        assert!(!AdamHw::within_bound(f32::NAN, 0.0, 0.0, 0.0));
+        assert!(!AdamHw::within_bound(0.0, 0.0, -1.0, 0.0));
+        assert!(!AdamHw::within_bound(0.0, 0.0, 0.0, f32::INFINITY));
     }
 
     /// The CPU's square root equals the core's bit-by-bit one on 2^25 inputs spread over
