@@ -3,6 +3,7 @@
 
 #[allow(unused_imports)]
 use super::*;
+use himap_core::mapper::MapperConfig;
 
 /// What [`run_map`] computed before choosing the backend.
 pub(super) struct RunContext {
@@ -23,18 +24,10 @@ pub(super) fn map_with<B: MapBackend>(
 where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
-    let RunContext {
-        t_start,
-        k,
-        aabb,
-        box_src,
-        reason,
-    } = ctx;
     let cfg = &opts.config;
-    let n = ds.len();
-    let backend_name = format!("{} ({reason})", backend.name());
-    let threads = backend.threads();
-    let params = backend.layout().param_count();
+    let (n, k) = (ds.len(), ctx.k);
+    let backend_name = format!("{} ({})", backend.name(), ctx.reason);
+    let (threads, params) = (backend.threads(), backend.layout().param_count());
     let mcfg = cfg.mapper_config()?;
     let mut px = vec![PixelSample::default(); mcfg.pixels as usize];
     let mut res = vec![PixelResult::default(); mcfg.pixels as usize];
@@ -49,108 +42,373 @@ where
         )?),
         None => None,
     };
-    let mut mapper = match &resumed {
-        None => Mapper::new(backend, mcfg, k, &mut px, &mut res)
-            .map_err(|e| anyhow::anyhow!("mapper: {e}"))?,
-        Some((run, data)) => {
-            let mut backend = backend;
-            backend.import(data)?;
-            for (g, lr) in Group::ALL.into_iter().zip(run.lrs()?) {
-                backend.set_adam_lr(g, lr)?;
-            }
-            let state = run.mapper_state()?;
-            let mut m = Mapper::restore(backend, mcfg, k, &mut px, &mut res, &state)
-                .map_err(|e| anyhow::anyhow!("mapper: {e}"))?;
-            // the images of the frames the mapper holds, back into their slots
-            for e in state.held() {
-                let frame = ds.frame(e.id as usize)?;
-                m.backend_mut()
-                    .upload_frame(e.slot, &pack_image(&frame.rgb))?;
-            }
-            if opts.progress {
-                eprintln!(
-                    "resuming after frame {} of {n} from {}",
-                    run.pushed,
-                    checkpoint::path_of(opts.resume.as_deref().unwrap_or(Path::new("."))).display()
-                );
-            }
-            m
-        }
-    };
+    let mut mapper = start_mapper(opts, ds, backend, mcfg, k, &mut px, &mut res, &resumed)?;
+    let mut rec = UpdateRecorder::new(opts, k, &mcfg, n, resumed.as_ref().map(|(run, _)| run))?;
+    let progress = Progress::new(opts, n);
+    let start = resumed.as_ref().map_or(0, |(run, _)| run.pushed as usize);
 
-    let ek = {
-        let w = ((k.width as f32 * cfg.eval.scale).round() as u32).max(1);
-        let h = ((k.height as f32 * cfg.eval.scale).round() as u32).max(1);
-        k.resized(w, h)
-    };
-    let expected_updates = if n >= mcfg.init_frames as usize {
-        1 + (n - mcfg.init_frames as usize).div_ceil(mcfg.update_every as usize)
-    } else {
-        1
-    };
-    let render_every = (expected_updates / cfg.eval.renders.max(1) as usize).max(1);
-
-    // metrics.csv: the header now, then rewritten whole (atomically) after every update, so a
-    // run killed halfway keeps what it measured.
-    let csv_path = opts.out.join("metrics.csv");
-    let (mut rows, mut mapping_s, mut outside_box, start) = match &resumed {
-        Some((run, _)) => (
-            run.rows.clone(),
-            run.mapping_s,
-            run.outside_box,
-            run.pushed as usize,
-        ),
-        None => (Vec::new(), 0.0f64, 0usize, 0usize),
-    };
-    write_metrics(&csv_path, &rows)?;
-    // Without a terminal (a log file, a service) the progress bar draws nothing: plain lines
-    // every few seconds instead.
-    let plain = opts.progress && !std::io::stderr().is_terminal();
-    let log = std::cell::RefCell::new(PlainLog::new(plain, n));
-    let pb = if opts.progress && !plain {
-        let pb = indicatif::ProgressBar::new(n as u64);
-        pb.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{elapsed_precise} [{bar:30}] frame {pos}/{len} {msg}",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
-            .progress_chars("=> "),
-        );
-        pb
-    } else {
-        indicatif::ProgressBar::hidden()
-    };
-    let mut last_psnr = rows
-        .iter()
-        .rev()
-        .map(|r| r.psnr)
-        .find(|p| !p.is_nan())
-        .unwrap_or(f64::NAN);
+    // Poses of the frames pushed so far (the mesh level is measured over them after mapping).
+    let mut poses: Vec<Pose> = Vec::with_capacity(n);
+    for i in 0..start {
+        poses.push(ds.frame(i)?.pose);
+    }
+    progress.pb.set_position(start as u64);
+    // Frames pushed at the last checkpoint this run wrote (named when the backend fails).
+    let mut last_checkpoint: Option<usize> = None;
     let mut last_frame: Option<crate::dataset::Frame> = None;
+    let pushed = opts.stop_after.map_or(n, |s| s.min(n));
+    for i in start..pushed {
+        let frame = ds.frame(i)?;
+        poses.push(frame.pose);
+        if !inside(&ctx.aabb, frame.pose.origin()) {
+            if rec.outside_box == 0 {
+                progress.warn(&outside_box_warning(&frame, &ctx));
+            }
+            rec.outside_box += 1;
+        }
+        let rgba = pack_image(&frame.rgb);
+        let t0 = Instant::now();
+        let last_psnr = rec.last_psnr;
+        let rep = mapper
+            .push_frame_observed(&rgba, frame.pose, &mut |info: &IterInfo| {
+                progress.iteration(i, frame.index, info, last_psnr)
+            })
+            .map_err(|e| {
+                let at = format!("frame {}", frame.index);
+                mid_run_error(e, &at, &backend_name, last_checkpoint, opts)
+            })?;
+        let dt = t0.elapsed().as_secs_f64();
+        if let Some(r) = rep {
+            rec.record(mapper.backend_mut(), r, &frame, dt, &progress)?;
+        }
+        progress.pb.inc(1);
+        last_frame = Some(frame);
+        if opts.checkpoint_every > 0 && (i + 1).is_multiple_of(opts.checkpoint_every) {
+            let id = DatasetId::new(&opts.dataset, n, k.width, k.height, &poses);
+            let lrs = Group::ALL.map(|g| mapper.backend().adam_lr(g));
+            let run = RunState::new(
+                cfg,
+                id,
+                &mapper.state(),
+                lrs,
+                &rec.rows,
+                rec.outside_box,
+                rec.mapping_s,
+            );
+            let data = mapper.backend_mut().export()?;
+            checkpoint::save(&opts.out, cfg, &data, &run)?;
+            last_checkpoint = Some(i + 1);
+        }
+    }
+    if let Some(frame) = last_frame.filter(|_| pushed == n) {
+        let t0 = Instant::now();
+        if let Some(r) = mapper.flush(&mut |_: &IterInfo| {}).map_err(|e| {
+            mid_run_error(e, "the final update", &backend_name, last_checkpoint, opts)
+        })? {
+            let dt = t0.elapsed().as_secs_f64();
+            rec.record(mapper.backend_mut(), r, &frame, dt, &progress)?;
+        }
+    }
+    progress.pb.finish_and_clear();
+    let iterations = mapper.iterations();
+    let (rejected_steps, lr_reductions) = (mapper.rejected_steps(), mapper.lr_reductions());
+    if lr_reductions > 0 {
+        eprintln!(
+            "warning: {rejected_steps} mapping steps were not finite; the learning rates were \
+             lowered {lr_reductions} times (mapper.rejected_lr_after / rejected_lr_factor)"
+        );
+    }
+    progress
+        .log
+        .borrow_mut()
+        .done(rec.rows.len(), rec.mapping_s);
 
-    let handle = |mapper: &mut Mapper<'_, B>,
-                  report: UpdateReport,
-                  frame: &crate::dataset::Frame,
-                  seconds: f64,
-                  rows: &mut Vec<UpdateMetrics>,
-                  last_psnr: &mut f64|
-     -> anyhow::Result<()> {
-        let u = rows.len();
+    let mut backend = mapper.into_backend();
+    let fin = final_map_eval(&mut backend, ds, &rec.ek, cfg.eval.final_every as usize)?;
+    if opts.progress {
+        eprintln!(
+            "final map over {} frames of the sequence: PSNR {} dB, SSIM {}, Depth L1 {} cm",
+            fin.frames,
+            fmt_opt(fin.psnr, 2),
+            fmt_opt(fin.ssim, 3),
+            fmt_opt(fin.depth_l1_cm, 2)
+        );
+    }
+    let surface = write_meshes(&mut backend, opts, &rec.ek, &k, &poses, ctx.aabb)?;
+    let (mesh_metrics, mesh_gt, mesh_err) = evaluate_mesh(opts, ds, &surface);
+
+    let data = backend.export()?;
+    save_map(&opts.out.join("map.safetensors"), cfg, &data)?;
+
+    let rows = &rec.rows;
+    let mapping_s = rec.mapping_s;
+    let summary = MapSummary {
+        dataset: opts.dataset.clone(),
+        frames: n,
+        width: k.width,
+        height: k.height,
+        backend: backend_name,
+        threads,
+        scene_box: [ctx.aabb.min, ctx.aabb.max],
+        scene_box_source: ctx.box_src.to_string(),
+        updates: rows.len(),
+        iterations,
+        rejected_steps,
+        lr_reductions,
+        mean_psnr: mean(rows.iter().map(|r| r.psnr)),
+        mean_ssim: mean(rows.iter().map(|r| r.ssim)),
+        mean_depth_l1_cm: mean(rows.iter().filter_map(|r| r.depth_l1_cm)),
+        frames_outside_box: rec.outside_box,
+        final_frames: fin.frames,
+        final_psnr: fin.psnr,
+        final_ssim: fin.ssim,
+        final_depth_l1_cm: fin.depth_l1_cm,
+        final_per_frame: fin.per_frame,
+        mesh: mesh_metrics,
+        mesh_ground_truth: mesh_gt,
+        mesh_error: mesh_err,
+        mesh_faces: surface.faces,
+        mesh_full_faces: surface.full_faces,
+        mesh_level: surface.level,
+        beta: surface.beta,
+        seconds_total: ctx.t_start.elapsed().as_secs_f64(),
+        seconds_mapping: mapping_s,
+        seconds_per_iteration: mapping_s / iterations.max(1) as f64,
+        seconds_per_frame: mapping_s / n.max(1) as f64,
+        parameters: params,
+        config: cfg.clone(),
+    };
+    let sp = opts.out.join("summary.json");
+    crate::atomic::write_bytes_atomic(&sp, serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    Ok(summary)
+}
+
+/// The mapper a run starts with: a new one, or the one `--resume`'s checkpoint holds (its
+/// learning rates and state restored, the images of the frames it holds uploaded again).
+#[allow(clippy::too_many_arguments)]
+fn start_mapper<'a, B: MapBackend>(
+    opts: &MapOptions,
+    ds: &dyn crate::dataset::Dataset,
+    backend: B,
+    mcfg: MapperConfig,
+    k: Intrinsics,
+    px: &'a mut [PixelSample],
+    res: &'a mut [PixelResult],
+    resumed: &Option<(RunState, ModelData)>,
+) -> anyhow::Result<Mapper<'a, B>>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let Some((run, data)) = resumed else {
+        return Mapper::new(backend, mcfg, k, px, res).map_err(|e| anyhow::anyhow!("mapper: {e}"));
+    };
+    let mut backend = backend;
+    backend.import(data)?;
+    for (g, lr) in Group::ALL.into_iter().zip(run.lrs()?) {
+        backend.set_adam_lr(g, lr)?;
+    }
+    let state = run.mapper_state()?;
+    let mut m = Mapper::restore(backend, mcfg, k, px, res, &state)
+        .map_err(|e| anyhow::anyhow!("mapper: {e}"))?;
+    // the images of the frames the mapper holds, back into their slots
+    for e in state.held() {
+        let frame = ds.frame(e.id as usize)?;
+        m.backend_mut()
+            .upload_frame(e.slot, &pack_image(&frame.rgb))?;
+    }
+    if opts.progress {
+        eprintln!(
+            "resuming after frame {} of {} from {}",
+            run.pushed,
+            ds.len(),
+            checkpoint::path_of(opts.resume.as_deref().unwrap_or(Path::new("."))).display()
+        );
+    }
+    Ok(m)
+}
+
+/// Whether the point is inside the box (false for NaN).
+fn inside(aabb: &Aabb, o: [f32; 3]) -> bool {
+    (0..3).all(|a| o[a] >= aabb.min[a] && o[a] <= aabb.max[a])
+}
+
+/// The warning for the first camera outside the scene box.
+fn outside_box_warning(frame: &crate::dataset::Frame, ctx: &RunContext) -> String {
+    let (o, b) = (frame.pose.origin(), &ctx.aabb);
+    format!(
+        "warning: frame {}: the camera ({:.2}, {:.2}, {:.2}) is outside the scene box ({}) \
+         [{:.2}, {:.2}, {:.2}]..[{:.2}, {:.2}, {:.2}]; the map cannot hold what lies beyond \
+         the box: give a box that contains the path (scene.min, scene.max)",
+        frame.index,
+        o[0],
+        o[1],
+        o[2],
+        ctx.box_src,
+        b.min[0],
+        b.min[1],
+        b.min[2],
+        b.max[0],
+        b.max[1],
+        b.max[2]
+    )
+}
+
+/// What a run shows while it maps: a progress bar on a terminal, plain log lines every few
+/// seconds otherwise (a log file, a service), nothing without `opts.progress`.
+struct Progress {
+    pb: indicatif::ProgressBar,
+    log: std::cell::RefCell<PlainLog>,
+}
+
+impl Progress {
+    fn new(opts: &MapOptions, n: usize) -> Self {
+        let plain = opts.progress && !std::io::stderr().is_terminal();
+        let pb = if opts.progress && !plain {
+            let pb = indicatif::ProgressBar::new(n as u64);
+            pb.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{elapsed_precise} [{bar:30}] frame {pos}/{len} {msg}",
+                )
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+                .progress_chars("=> "),
+            );
+            pb
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        Self {
+            pb,
+            log: std::cell::RefCell::new(PlainLog::new(plain, n)),
+        }
+    }
+
+    /// A warning printed above the bar.
+    fn warn(&self, msg: &str) {
+        self.pb.suspend(|| eprintln!("{msg}"));
+    }
+
+    /// One mapping iteration of the update at pushed frame `i` (source frame `frame`).
+    fn iteration(&self, i: usize, frame: usize, info: &IterInfo, last_psnr: f64) {
+        self.pb.set_message(format!(
+            "{} it {}/{} loss {:.4} (c {:.4} w {:.4}) PSNR {:.2}",
+            kind_label(info.kind),
+            info.iter + 1,
+            info.iters,
+            info.loss,
+            info.color_loss,
+            info.warp_loss,
+            last_psnr
+        ));
+        if info.iter.is_multiple_of(10) {
+            self.pb.tick();
+        }
+        if info.rejected {
+            self.warn(&format!(
+                "warning: frame {frame}: {} iteration {}/{} was not finite (loss {}); skipped, \
+                 parameters kept",
+                kind_label(info.kind),
+                info.iter + 1,
+                info.iters,
+                info.loss
+            ));
+        }
+        self.log.borrow_mut().iteration(i, info);
+    }
+}
+
+/// The metrics of a run's updates: each update's evaluation (every `eval.every`-th; a render
+/// strip every `render_every`-th) appended to `rows`, and `metrics.csv` rewritten whole
+/// (atomically) after every update, so a run killed halfway keeps what it measured.
+struct UpdateRecorder<'o> {
+    opts: &'o MapOptions,
+    /// The evaluation camera (`eval.scale` of the mapping camera).
+    ek: Intrinsics,
+    render_every: usize,
+    csv_path: PathBuf,
+    rows: Vec<UpdateMetrics>,
+    /// PSNR of the last evaluated update (shown in the progress message).
+    last_psnr: f64,
+    /// Seconds spent in updates.
+    mapping_s: f64,
+    /// Pushed frames whose camera was outside the scene box.
+    outside_box: usize,
+}
+
+impl<'o> UpdateRecorder<'o> {
+    /// Starts the metrics (from a resumed run's rows) and writes `metrics.csv`'s header.
+    fn new(
+        opts: &'o MapOptions,
+        k: Intrinsics,
+        mcfg: &MapperConfig,
+        n: usize,
+        resumed: Option<&RunState>,
+    ) -> anyhow::Result<Self> {
+        let cfg = &opts.config;
+        let ek = {
+            let w = ((k.width as f32 * cfg.eval.scale).round() as u32).max(1);
+            let h = ((k.height as f32 * cfg.eval.scale).round() as u32).max(1);
+            k.resized(w, h)
+        };
+        let expected_updates = if n >= mcfg.init_frames as usize {
+            1 + (n - mcfg.init_frames as usize).div_ceil(mcfg.update_every as usize)
+        } else {
+            1
+        };
+        let (rows, mapping_s, outside_box) = match resumed {
+            Some(run) => (run.rows.clone(), run.mapping_s, run.outside_box),
+            None => (Vec::new(), 0.0f64, 0usize),
+        };
+        let csv_path = opts.out.join("metrics.csv");
+        write_metrics(&csv_path, &rows)?;
+        let last_psnr = rows
+            .iter()
+            .rev()
+            .map(|r| r.psnr)
+            .find(|p| !p.is_nan())
+            .unwrap_or(f64::NAN);
+        Ok(Self {
+            opts,
+            ek,
+            render_every: (expected_updates / cfg.eval.renders.max(1) as usize).max(1),
+            csv_path,
+            rows,
+            last_psnr,
+            mapping_s,
+            outside_box,
+        })
+    }
+
+    /// Records an update that took `seconds` and ended at `frame`.
+    fn record<B: MapBackend>(
+        &mut self,
+        backend: &mut B,
+        report: UpdateReport,
+        frame: &crate::dataset::Frame,
+        seconds: f64,
+        progress: &Progress,
+    ) -> anyhow::Result<()>
+    where
+        B::Error: std::error::Error + Send + Sync + 'static,
+    {
+        self.mapping_s += seconds;
+        let u = self.rows.len();
+        let cfg = &self.opts.config;
         let eval = cfg.eval.every > 0 && u.is_multiple_of(cfg.eval.every as usize);
         let (mut psnr, mut ssim, mut dl1) = (f64::NAN, f64::NAN, None);
         if eval {
-            let v = evaluate_view(mapper.backend_mut(), &ek, frame)?;
+            let v = evaluate_view(backend, &self.ek, frame)?;
             (psnr, ssim, dl1) = (v.psnr, v.ssim, v.depth_l1_cm);
-            if u.is_multiple_of(render_every) {
-                let p = opts
+            if u.is_multiple_of(self.render_every) {
+                let p = self
+                    .opts
                     .out
                     .join("renders")
                     .join(format!("frame{:06}.png", frame.index));
                 write_render(&p, &v.input, &v.out, v.gt_depth.as_deref())?;
             }
-            *last_psnr = psnr;
+            self.last_psnr = psnr;
         }
-        rows.push(UpdateMetrics {
+        self.rows.push(UpdateMetrics {
             frame: frame.index,
             kind: match report.kind {
                 UpdateKind::Init => "init".into(),
@@ -169,181 +427,12 @@ where
             iters: report.iters,
             seconds,
         });
-        write_metrics(&csv_path, rows)?;
-        if let Some(r) = rows.last() {
-            log.borrow_mut().update(r);
+        write_metrics(&self.csv_path, &self.rows)?;
+        if let Some(r) = self.rows.last() {
+            progress.log.borrow_mut().update(r);
         }
         Ok(())
-    };
-
-    // Poses of the frames pushed so far (the mesh level is measured over them after mapping).
-    let mut poses: Vec<Pose> = Vec::with_capacity(n);
-    for i in 0..start {
-        poses.push(ds.frame(i)?.pose);
     }
-    pb.set_position(start as u64);
-    // Frames pushed at the last checkpoint this run wrote (named when the backend fails).
-    let mut last_checkpoint: Option<usize> = None;
-    let pushed = opts.stop_after.map_or(n, |s| s.min(n));
-    for i in start..pushed {
-        let frame = ds.frame(i)?;
-        poses.push(frame.pose);
-        let o = frame.pose.origin();
-        if (0..3).any(|a| !(o[a] >= aabb.min[a] && o[a] <= aabb.max[a])) {
-            if outside_box == 0 {
-                pb.suspend(|| {
-                    eprintln!(
-                        "warning: frame {}: the camera ({:.2}, {:.2}, {:.2}) is outside the scene \
-                         box ({box_src}) [{:.2}, {:.2}, {:.2}]..[{:.2}, {:.2}, {:.2}]; the map cannot \
-                         hold what lies beyond the box: give a box that contains the path \
-                         (scene.min, scene.max)",
-                        frame.index,
-                        o[0],
-                        o[1],
-                        o[2],
-                        aabb.min[0],
-                        aabb.min[1],
-                        aabb.min[2],
-                        aabb.max[0],
-                        aabb.max[1],
-                        aabb.max[2]
-                    )
-                });
-            }
-            outside_box += 1;
-        }
-        let rgba = pack_image(&frame.rgb);
-        let t0 = Instant::now();
-        let lp = last_psnr;
-        let mut observe = |info: &IterInfo| {
-            pb.set_message(format!(
-                "{} it {}/{} loss {:.4} (c {:.4} w {:.4}) PSNR {:.2}",
-                kind_label(info.kind),
-                info.iter + 1,
-                info.iters,
-                info.loss,
-                info.color_loss,
-                info.warp_loss,
-                lp
-            ));
-            if info.iter.is_multiple_of(10) {
-                pb.tick();
-            }
-            if info.rejected {
-                pb.suspend(|| {
-                    eprintln!(
-                        "warning: frame {}: {} iteration {}/{} was not finite (loss {}); \
-                         skipped, parameters kept",
-                        frame.index,
-                        kind_label(info.kind),
-                        info.iter + 1,
-                        info.iters,
-                        info.loss
-                    )
-                });
-            }
-            log.borrow_mut().iteration(i, info);
-        };
-        let rep = mapper
-            .push_frame_observed(&rgba, frame.pose, &mut observe)
-            .map_err(|e| {
-                let at = format!("frame {}", frame.index);
-                mid_run_error(e, &at, &backend_name, last_checkpoint, opts)
-            })?;
-        let dt = t0.elapsed().as_secs_f64();
-        if let Some(r) = rep {
-            mapping_s += dt;
-            handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
-        }
-        pb.inc(1);
-        last_frame = Some(frame);
-        if opts.checkpoint_every > 0 && (i + 1).is_multiple_of(opts.checkpoint_every) {
-            let id = DatasetId::new(&opts.dataset, n, k.width, k.height, &poses);
-            let lrs = Group::ALL.map(|g| mapper.backend().adam_lr(g));
-            let run = RunState::new(cfg, id, &mapper.state(), lrs, &rows, outside_box, mapping_s);
-            let data = mapper.backend_mut().export()?;
-            checkpoint::save(&opts.out, cfg, &data, &run)?;
-            last_checkpoint = Some(i + 1);
-        }
-    }
-    if let Some(frame) = last_frame.filter(|_| pushed == n) {
-        let t0 = Instant::now();
-        if let Some(r) = mapper.flush(&mut |_: &IterInfo| {}).map_err(|e| {
-            mid_run_error(e, "the final update", &backend_name, last_checkpoint, opts)
-        })? {
-            let dt = t0.elapsed().as_secs_f64();
-            mapping_s += dt;
-            handle(&mut mapper, r, &frame, dt, &mut rows, &mut last_psnr)?;
-        }
-    }
-    pb.finish_and_clear();
-    let iterations = mapper.iterations();
-    let (rejected_steps, lr_reductions) = (mapper.rejected_steps(), mapper.lr_reductions());
-    if lr_reductions > 0 {
-        eprintln!(
-            "warning: {rejected_steps} mapping steps were not finite; the learning rates were \
-             lowered {lr_reductions} times (mapper.rejected_lr_after / rejected_lr_factor)"
-        );
-    }
-
-    log.borrow_mut().done(rows.len(), mapping_s);
-
-    let mut backend = mapper.into_backend();
-    let fin = final_map_eval(&mut backend, ds, &ek, cfg.eval.final_every as usize)?;
-    if opts.progress {
-        eprintln!(
-            "final map over {} frames of the sequence: PSNR {} dB, SSIM {}, Depth L1 {} cm",
-            fin.frames,
-            fmt_opt(fin.psnr, 2),
-            fmt_opt(fin.ssim, 3),
-            fmt_opt(fin.depth_l1_cm, 2)
-        );
-    }
-    let surface = write_meshes(&mut backend, opts, &ek, &k, &poses, aabb)?;
-    let (mesh_metrics, mesh_gt, mesh_err) = evaluate_mesh(opts, ds, &surface);
-
-    let data = backend.export()?;
-    save_map(&opts.out.join("map.safetensors"), cfg, &data)?;
-
-    let summary = MapSummary {
-        dataset: opts.dataset.clone(),
-        frames: n,
-        width: k.width,
-        height: k.height,
-        backend: backend_name,
-        threads,
-        scene_box: [aabb.min, aabb.max],
-        scene_box_source: box_src.to_string(),
-        updates: rows.len(),
-        iterations,
-        rejected_steps,
-        lr_reductions,
-        mean_psnr: mean(rows.iter().map(|r| r.psnr)),
-        mean_ssim: mean(rows.iter().map(|r| r.ssim)),
-        mean_depth_l1_cm: mean(rows.iter().filter_map(|r| r.depth_l1_cm)),
-        frames_outside_box: outside_box,
-        final_frames: fin.frames,
-        final_psnr: fin.psnr,
-        final_ssim: fin.ssim,
-        final_depth_l1_cm: fin.depth_l1_cm,
-        final_per_frame: fin.per_frame,
-        mesh: mesh_metrics,
-        mesh_ground_truth: mesh_gt,
-        mesh_error: mesh_err,
-        mesh_faces: surface.faces,
-        mesh_full_faces: surface.full_faces,
-        mesh_level: surface.level,
-        beta: surface.beta,
-        seconds_total: t_start.elapsed().as_secs_f64(),
-        seconds_mapping: mapping_s,
-        seconds_per_iteration: mapping_s / iterations.max(1) as f64,
-        seconds_per_frame: mapping_s / n.max(1) as f64,
-        parameters: params,
-        config: cfg.clone(),
-    };
-    let sp = opts.out.join("summary.json");
-    crate::atomic::write_bytes_atomic(&sp, serde_json::to_string_pretty(&summary)?.as_bytes())?;
-    Ok(summary)
 }
 
 /// What [`write_meshes`] wrote.
