@@ -320,12 +320,16 @@ pub fn grid_init(
             "grid: init std must be finite and >= 0",
         ));
     }
-    let mut i = 0;
-    while i < params.len() {
-        params[i] = std * crate::rng::normal(seed, 0, i as u32);
-        i += 1;
-    }
+    grid_init_part(params, 0, seed, std);
     Ok(())
+}
+
+/// The values [`grid_init`] gives parameters `start..start + params.len()` (each depends on
+/// its index alone, so parts of a grid may be filled in parallel with the whole grid's bits).
+pub fn grid_init_part(params: &mut [f32], start: usize, seed: u32, std: f32) {
+    for (i, p) in params.iter_mut().enumerate() {
+        *p = std * crate::rng::normal(seed, 0, (start + i) as u32);
+    }
 }
 
 // ---------------------------------------------------------------------------------------------

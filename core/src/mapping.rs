@@ -50,8 +50,8 @@ pub struct WindowImages<'a, P: SlotPixels + ?Sized> {
 /// Read access to slot-major packed RGBA8 pixels (implemented for `[u32]`; a GPU backend
 /// implements it over its storage buffer).
 pub trait SlotPixels {
-    /// Whether [`Self::prefetch`] does anything (see [`FrameImages::PREFETCH`]).
-    const PREFETCH: bool = false;
+    /// The pixels live in a CPU's memory (see [`FrameImages::CPU`]).
+    const CPU: bool = false;
     fn pixel(&self, i: usize) -> u32;
     /// A cache hint: pixel `i` will be read soon. No value changes; the default does nothing.
     #[inline(always)]
@@ -80,7 +80,7 @@ impl<P: SlotPixels + ?Sized> WindowImages<'_, P> {
 }
 
 impl<P: SlotPixels + ?Sized> FrameImages for WindowImages<'_, P> {
-    const PREFETCH: bool = P::PREFETCH;
+    const CPU: bool = P::CPU;
 
     #[inline(always)]
     fn size(&self) -> (u32, u32) {

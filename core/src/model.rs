@@ -272,7 +272,7 @@ impl ModelLayout {
     /// Initialises one group's parameters (deterministic for `seed`).
     pub fn init_group(&self, g: Group, params: &mut [f32], seed: u32) -> Result<(), Error> {
         crate::error::check_len(g.name(), params.len(), self.group_len(g))?;
-        let s = seed.wrapping_mul(16).wrapping_add(g as u32);
+        let s = Self::group_seed(seed, g);
         match g {
             Group::GeometryGrid => {
                 grid::grid_init(&self.geometry_grid, params, s, self.config.grid_init_std)
@@ -293,6 +293,43 @@ impl ModelLayout {
                 Ok(())
             }
         }
+    }
+
+    /// The seed [`Self::init_group`] draws group `g` with.
+    pub fn group_seed(seed: u32, g: Group) -> u32 {
+        seed.wrapping_mul(16).wrapping_add(g as u32)
+    }
+
+    /// Whether [`Self::init_grid_part`] can fill group `g` in parts (the grids, whose values
+    /// depend on the parameter index alone).
+    pub fn is_grid(g: Group) -> bool {
+        matches!(g, Group::GeometryGrid | Group::AppearanceGrid)
+    }
+
+    /// [`Self::init_group`]'s values for parameters `start..start + params.len()` of a grid
+    /// group: the same bits as the whole group's initialisation, so parts can be filled on
+    /// several threads. Errors for other groups, a part past the group's end or an invalid
+    /// initialisation scale.
+    pub fn init_grid_part(
+        &self,
+        g: Group,
+        params: &mut [f32],
+        start: usize,
+        seed: u32,
+    ) -> Result<(), Error> {
+        let std = self.config.grid_init_std;
+        if !Self::is_grid(g) || start + params.len() > self.group_len(g) {
+            return Err(Error::InvalidConfig(
+                "init_grid_part: a part of a grid group",
+            ));
+        }
+        if !(std.is_finite() && std >= 0.0) {
+            return Err(Error::InvalidConfig(
+                "grid: init std must be finite and >= 0",
+            ));
+        }
+        grid::grid_init_part(params, start, Self::group_seed(seed, g), std);
+        Ok(())
     }
 }
 

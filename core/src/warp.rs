@@ -86,9 +86,10 @@ pub const MAX_HALF: u32 = (PATCH / 2) as u32;
 /// frame has the same `size() = (width, height)`, and `x < width`, `y < height` always hold
 /// in the calls [`warp_pixel`] makes.
 pub trait FrameImages {
-    /// Whether [`Self::prefetch_row`] does anything (a CPU's cache hint); when false
-    /// [`warp_pixel`] does not even compute the rows it would name.
-    const PREFETCH: bool = false;
+    /// The images live in a CPU's memory: [`warp_pixel`] names the next view's rows to
+    /// [`Self::prefetch_row`] and warps a full patch in SIMD-friendly passes
+    /// ([`warp_view_lanes`], the same bits). False (the default, GPUs): neither is compiled in.
+    const CPU: bool = false;
     fn size(&self) -> (u32, u32);
     fn texel(&self, frame: usize, x: u32, y: u32) -> [f32; 3];
     /// A cache hint: texels `x0..=x1` of row `y` of `frame` will be read soon (`x0 <= x1`,
@@ -320,6 +321,67 @@ fn centre_valid(pu: f32, pv: f32, z: f32, w: u32, h: u32, margin: f32) -> bool {
     z > MIN_Z && pu > margin && pu < umax && pv > margin && pv < vmax
 }
 
+/// The per-view patch stage of [`warp_pixel`] for a full patch (`half == MAX_HALF`), as a
+/// CPU runs it: the projections of all patch points first, in straight passes over
+/// structure-of-arrays copies that vectorise (the divisions 8 or 16 lanes at a time), then the
+/// bilinear samples from the precomputed coordinates (independent loads the CPU overlaps).
+/// Every element takes the operations of the scalar loop in the same order (`z > MIN_Z` as a
+/// select), so `tgt` and `dtgt` are the same bits (tested against the scalar form).
+#[allow(clippy::too_many_arguments)]
+#[inline(never)]
+fn warp_view_lanes<I: FrameImages + ?Sized>(
+    images: &I,
+    j: usize,
+    k: &Intrinsics,
+    pose_j: &Pose,
+    xw: &[[f32; 3]; PATCH_PIXELS],
+    dxw: &[[f32; 3]; PATCH_PIXELS],
+    tgt: &mut Patch,
+    dtgt: &mut Patch,
+) {
+    let (w, h) = images.size();
+    let m = &pose_j.m;
+    let mut pu = [0.0f32; PATCH_PIXELS];
+    let mut pv = [0.0f32; PATCH_PIXELS];
+    let mut dpu = [0.0f32; PATCH_PIXELS];
+    let mut dpv = [0.0f32; PATCH_PIXELS];
+    for p in 0..PATCH_PIXELS {
+        // Pose::inverse_transform, inverse_rotate and Intrinsics::project, written out.
+        let q = [xw[p][0] - m[0][3], xw[p][1] - m[1][3], xw[p][2] - m[2][3]];
+        let x0 = m[0][0] * q[0] + m[1][0] * q[1] + m[2][0] * q[2];
+        let x1 = m[0][1] * q[0] + m[1][1] * q[1] + m[2][1] * q[2];
+        let z = m[0][2] * q[0] + m[1][2] * q[1] + m[2][2] * q[2];
+        let d = dxw[p];
+        let xd0 = m[0][0] * d[0] + m[1][0] * d[1] + m[2][0] * d[2];
+        let xd1 = m[0][1] * d[0] + m[1][1] * d[1] + m[2][1] * d[2];
+        let xd2 = m[0][2] * d[0] + m[1][2] * d[1] + m[2][2] * d[2];
+        pu[p] = k.fx * x0 / z + k.cx;
+        pv[p] = k.fy * x1 / z + k.cy;
+        let iz = 1.0 / z;
+        let zr = xd2 * iz;
+        let front = z > MIN_Z;
+        dpu[p] = if front {
+            k.fx * (xd0 - x0 * zr) * iz
+        } else {
+            0.0
+        };
+        dpv[p] = if front {
+            k.fy * (xd1 - x1 * zr) * iz
+        } else {
+            0.0
+        };
+    }
+    for p in 0..PATCH_PIXELS {
+        let (val, du, dv) = sample_bilinear(images, j, w, h, pu[p], pv[p]);
+        tgt[p] = val;
+        let mut c = 0;
+        while c < 3 {
+            dtgt[p][c] = du[c] * dpu[p] + dv[c] * dpv[p];
+            c += 1;
+        }
+    }
+}
+
 /// Loss of one source pixel (integer pixel `u`, `v` of window frame `src`), warped with the
 /// fronto-parallel plane at rendered centre depth `depth` into every other frame of the
 /// window (`0..n_frames`, `poses[j]` camera-to-world, `images` frame `j`), and its derivative
@@ -410,7 +472,7 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
             if centre_valid(pu, pv, z, w, h, cfg.margin) {
                 mask |= 1u32 << j;
                 count += 1;
-                if I::PREFETCH {
+                if I::CPU {
                     centres[j] = [pu, pv];
                 }
             }
@@ -437,7 +499,7 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
 
     let mut loss = 0.0f32;
     let mut d_depth = 0.0f32;
-    if I::PREFETCH && mask != 0 {
+    if I::CPU && mask != 0 {
         let first = mask.trailing_zeros() as usize;
         prefetch_patch(images, first, centres[first][0], centres[first][1], half);
     }
@@ -447,7 +509,7 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
             j += 1;
             continue;
         }
-        if I::PREFETCH {
+        if I::CPU {
             // The next valid view's texels load while this one is computed.
             let later = if j + 1 < 32 {
                 mask & (u32::MAX << (j + 1))
@@ -462,33 +524,38 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         let pose_j = poses.pose(j);
 
         // Warped patch and its derivative with respect to depth.
-        let mut r = lo;
-        while r < hi {
-            let mut col = lo;
-            while col < hi {
-                let p = r * PATCH + col;
-                let x = pose_j.inverse_transform(xw[p]);
-                let xd = inverse_rotate(&pose_j, dxw[p]);
-                let (pu, pv, z) = k.project(x);
-                let (val, du, dv) = sample_bilinear(images, j, w, h, pu, pv);
-                tgt[p] = val;
-                let mut dpu = 0.0f32;
-                let mut dpv = 0.0f32;
-                if z > MIN_Z {
-                    let iz = 1.0 / z;
-                    let zr = xd[2] * iz;
-                    dpu = k.fx * (xd[0] - x[0] * zr) * iz;
-                    dpv = k.fy * (xd[1] - x[1] * zr) * iz;
+        if I::CPU && half == MAX_HALF as i32 {
+            warp_view_lanes(images, j, k, &pose_j, &xw, &dxw, &mut tgt, &mut dtgt);
+            g = [[0.0f32; 3]; PATCH_PIXELS];
+        } else {
+            let mut r = lo;
+            while r < hi {
+                let mut col = lo;
+                while col < hi {
+                    let p = r * PATCH + col;
+                    let x = pose_j.inverse_transform(xw[p]);
+                    let xd = inverse_rotate(&pose_j, dxw[p]);
+                    let (pu, pv, z) = k.project(x);
+                    let (val, du, dv) = sample_bilinear(images, j, w, h, pu, pv);
+                    tgt[p] = val;
+                    let mut dpu = 0.0f32;
+                    let mut dpv = 0.0f32;
+                    if z > MIN_Z {
+                        let iz = 1.0 / z;
+                        let zr = xd[2] * iz;
+                        dpu = k.fx * (xd[0] - x[0] * zr) * iz;
+                        dpv = k.fy * (xd[1] - x[1] * zr) * iz;
+                    }
+                    let mut c = 0;
+                    while c < 3 {
+                        dtgt[p][c] = du[c] * dpu + dv[c] * dpv;
+                        g[p][c] = 0.0;
+                        c += 1;
+                    }
+                    col += 1;
                 }
-                let mut c = 0;
-                while c < 3 {
-                    dtgt[p][c] = du[c] * dpu + dv[c] * dpv;
-                    g[p][c] = 0.0;
-                    c += 1;
-                }
-                col += 1;
+                r += 1;
             }
-            r += 1;
         }
 
         // Pair loss and its cotangent with respect to the warped patch.
@@ -538,7 +605,7 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
 
         // Chain to depth: patch pixels row-major, channels innermost.
         let mut d_pair = 0.0f32;
-        r = lo;
+        let mut r = lo;
         while r < hi {
             let mut col = lo;
             while col < hi {
@@ -696,6 +763,70 @@ mod tests {
             data,
         };
         warp_pixel(cfg, &intrinsics(), poses, poses.len(), src, u, v, d, &img)
+    }
+
+    /// [`PackedImages`] marked as CPU memory: `warp_pixel` takes its CPU form
+    /// ([`warp_view_lanes`], cache hints) over the same texels.
+    struct CpuImages<'a>(PackedImages<'a>);
+
+    impl FrameImages for CpuImages<'_> {
+        const CPU: bool = true;
+        fn size(&self) -> (u32, u32) {
+            self.0.size()
+        }
+        fn texel(&self, frame: usize, x: u32, y: u32) -> [f32; 3] {
+            self.0.texel(frame, x, y)
+        }
+    }
+
+    /// The CPU form of the patch stage gives the scalar form's bits: every source frame, a
+    /// grid of pixels (borders and margins included), depths from behind the cameras' reach to
+    /// far past the plane, NaN, the full patch and a smaller one (which keeps the scalar loop).
+    #[test]
+    fn cpu_form_equals_the_scalar_form() {
+        // Not powers of two, so that a change in the order of operations shows.
+        let k = Intrinsics {
+            fx: 61.3,
+            fy: 59.7,
+            cx: 31.4,
+            cy: 23.6,
+            ..intrinsics()
+        };
+        let poses = scene_poses();
+        let data = render(&k, &poses, W, H);
+        let img = PackedImages {
+            width: W,
+            height: H,
+            data: &data,
+        };
+        let cpu = CpuImages(img);
+        let mut compared = 0;
+        for half in [5u32, 3] {
+            let cfg = WarpConfig {
+                half,
+                min_views: 1,
+                margin: 1.0,
+                ..WarpConfig::dim_slam()
+            };
+            for src in 0..poses.len() {
+                for v in (0..H).step_by(3) {
+                    for u in (0..W).step_by(3) {
+                        for d in [0.05f32, 0.7, 1.9, 2.0, 2.3, 9.0, f32::NAN] {
+                            let n = poses.len();
+                            let a = warp_pixel(&cfg, &k, &poses[..], n, src, u, v, d, &img);
+                            let b = warp_pixel(&cfg, &k, &poses[..], n, src, u, v, d, &cpu);
+                            assert_eq!(
+                                (a.loss.to_bits(), a.d_depth.to_bits(), a.valid_views),
+                                (b.loss.to_bits(), b.d_depth.to_bits(), b.valid_views),
+                                "half {half} src {src} ({u}, {v}) depth {d}"
+                            );
+                            compared += (a.valid_views > 0) as usize;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(compared > 1000, "only {compared} pixels had valid views");
     }
 
     #[test]
