@@ -449,8 +449,11 @@ pub fn mlp_backward<P: ParamRead + ?Sized, S: GradSink>(
         }
         // Parameter gradients and the gradient with respect to this layer's input.
         // A zero `g` (an inactive ReLU) contributes exactly 0 to every parameter of its row
-        // (`to_fixed` of +-0 and of NaN is 0), so its sink calls are skipped; `d_prev` still
-        // takes every row, in row order.
+        // (`to_fixed` of +-0 and of NaN is 0), so its sink calls are skipped, and nothing to
+        // `d_prev`: with finite weights its row would add products `w * (+-0) = +-0`, and
+        // `x + (+-0)` is `x` for every `x` but `-0`, which `d_prev` never holds (it starts at
+        // `+0`, and a round-to-nearest sum is `-0` only when both terms are). The other rows
+        // add in row order.
         let mut d_prev = [0.0f32; MAX_WIDTH];
         let mut j = 0;
         while j < fan_out {
@@ -459,8 +462,8 @@ pub fn mlp_backward<P: ParamRead + ?Sized, S: GradSink>(
             if g != 0.0 {
                 sink.add(b_off + j, g);
                 sink.add_scaled(row, g, &scratch.act[k], fan_in);
+                params.axpy(row, g, &mut d_prev, fan_in);
             }
-            params.axpy(row, g, &mut d_prev, fan_in);
             j += 1;
         }
         delta = d_prev;
@@ -672,6 +675,69 @@ mod tests {
         );
         assert_eq!(g, [1.0, -1.0, 2.0, -2.0, 1.0, 2.0]);
         assert_eq!(dx[..2], [7.0, 10.0]);
+    }
+
+    /// Skipping the input-gradient rows of inactive units gives the bits of adding every row:
+    /// the input gradient equals a plain all-rows computation on random decoders with many
+    /// inactive units (and zero output gradients).
+    #[test]
+    fn input_gradient_equals_all_rows() {
+        let layout = MlpLayout::new(12, 32, 2, 3).unwrap();
+        let n = layout.param_count as usize;
+        for seed in 0..40u32 {
+            let mut params = std::vec![0.0f32; n];
+            mlp_init(&layout, &mut params, seed).unwrap();
+            let mut input = [0.0f32; MAX_WIDTH];
+            for (i, x) in input[..12].iter_mut().enumerate() {
+                *x = crate::rng::uniform(seed, 1, i as u32) * 4.0 - 2.0;
+            }
+            let mut scratch = MlpScratch::new();
+            let mut out = [0.0f32; MAX_OUT];
+            mlp_forward(&layout, &params[..], &input, &mut scratch, &mut out);
+            let mut d_out = [0.0f32; MAX_OUT];
+            for (o, d) in d_out[..3].iter_mut().enumerate() {
+                // some outputs without gradient, some negative zeros
+                *d = match (seed + o as u32) % 4 {
+                    0 => 0.0,
+                    1 => -0.0,
+                    _ => crate::rng::uniform(seed, 2, o as u32) - 0.5,
+                };
+            }
+            let mut d_in = [0.0f32; MAX_WIDTH];
+            mlp_backward(
+                &layout,
+                &params[..],
+                &scratch,
+                &d_out,
+                &mut d_in,
+                &mut NullSink,
+            );
+            // Reference: every row of every layer, in row order.
+            let mut delta = [0.0f32; MAX_WIDTH];
+            delta[..3].copy_from_slice(&d_out[..3]);
+            let mut fan_out = 3;
+            for k in (0..=2usize).rev() {
+                let fan_in = if k == 0 { 12 } else { 32 };
+                if k < 2 {
+                    for (j, d) in delta[..fan_out].iter_mut().enumerate() {
+                        if scratch.act[k + 1][j] <= 0.0 {
+                            *d = 0.0;
+                        }
+                    }
+                }
+                let w = layout.weight_offsets[k] as usize;
+                let mut prev = [0.0f32; MAX_WIDTH];
+                for (j, &g) in delta[..fan_out].iter().enumerate() {
+                    for (i, p) in prev[..fan_in].iter_mut().enumerate() {
+                        *p += params[w + j * fan_in + i] * g;
+                    }
+                }
+                delta = prev;
+                fan_out = fan_in;
+            }
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<std::vec::Vec<_>>();
+            assert_eq!(bits(&d_in[..12]), bits(&delta[..12]), "seed {seed}");
+        }
     }
 
     #[test]

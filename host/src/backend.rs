@@ -348,7 +348,15 @@ impl ModelGradSink for WorkerSink<'_> {
         let gi = group as usize;
         match self.grads[gi].get_mut(offset..offset + n) {
             Some(dst) if n > 0 => {
-                add_scaled_row(dst, g, &xs[..n]);
+                if n <= SHORT_ROW {
+                    // A few channels (the geometry grid's 2): inline, without the dispatch
+                    // and lane setup of a row.
+                    for (d, &x) in dst.iter_mut().zip(&xs[..n]) {
+                        *d = d.wrapping_add(to_fixed_host(g * x));
+                    }
+                } else {
+                    add_scaled_row(dst, g, &xs[..n]);
+                }
                 let t = &mut self.touched[gi];
                 t[offset >> BLOCK_SHIFT] = true;
                 t[(offset + n - 1) >> BLOCK_SHIFT] = true;
@@ -416,6 +424,9 @@ fn prefetch_rows<T>(row: &[T]) {
     #[cfg(not(target_arch = "x86_64"))]
     let _ = row;
 }
+
+/// Rows of at most this many contributions are converted inline, one at a time.
+const SHORT_ROW: usize = 4;
 
 /// Contributions below this magnitude take [`to_fixed_small`].
 const SMALL: f32 = 2048.0;
