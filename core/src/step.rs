@@ -15,8 +15,8 @@ use crate::mapping::{
     pixel_train, MappingLoss, PixelResult, PixelSample, WindowImages, WindowView,
 };
 use crate::model::{
-    ray_forward, ray_train, Group, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
-    RayResult, Recompute, SampleScratch, NUM_GROUPS,
+    ray_forward, ray_train, Group, LossConfig, ModelGradSink, ModelLayout, Params, PerGroup, Ray,
+    RayCache, RayResult, Recompute, SampleScratch, NUM_GROUPS,
 };
 use crate::warp::MAX_WINDOW;
 use crate::Error;
@@ -216,7 +216,7 @@ pub fn summarize_pixels(results: &[PixelResult], t: u32) -> StepStats {
 pub struct CpuBackend<'a> {
     layout: ModelLayout,
     groups: [GroupState<'a>; NUM_GROUPS],
-    adam: [AdamConfig; NUM_GROUPS],
+    adam: PerGroup<AdamConfig>,
     t: u32,
     store: ImageStore,
     images: &'a mut [u32],
@@ -227,7 +227,7 @@ impl<'a> CpuBackend<'a> {
     pub fn new(
         layout: ModelLayout,
         groups: [GroupState<'a>; NUM_GROUPS],
-        adam: [AdamConfig; NUM_GROUPS],
+        adam: PerGroup<AdamConfig>,
     ) -> Result<Self, Error> {
         let lens = layout.group_lens();
         let mut g = 0;
@@ -543,12 +543,12 @@ impl Backend for CpuBackend<'_> {
                 "learning rate must be finite and >= 0",
             ));
         }
-        self.adam[group as usize].lr = lr;
+        self.adam[group].lr = lr;
         Ok(())
     }
 
     fn adam_lr(&self, group: Group) -> f32 {
-        self.adam[group as usize].lr
+        self.adam[group].lr
     }
 
     fn set_min_transmittance(&mut self, t: f32) -> Result<(), Error> {
@@ -557,14 +557,14 @@ impl Backend for CpuBackend<'_> {
 }
 
 /// Default Adam settings per group (the paper's: grids 0.01, MLPs 1e-5; beta with the MLPs).
-pub fn paper_adam() -> [AdamConfig; NUM_GROUPS] {
-    [
+pub fn paper_adam() -> PerGroup<AdamConfig> {
+    PerGroup([
         AdamConfig::new(0.01),
         AdamConfig::new(0.01),
         AdamConfig::new(1e-5),
         AdamConfig::new(1e-5),
         AdamConfig::new(1e-5),
-    ]
+    ])
 }
 
 /// Borrows per-group buffers (any owner: `Vec`, arrays) as the [`GroupState`]s of a

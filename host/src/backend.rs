@@ -249,7 +249,7 @@ pub struct ParallelCpuBackend {
     workers: Vec<Mutex<Worker>>,
     /// The summed fixed-point gradient of the last step (what `read_grads` returns).
     grads: [Vec<i64>; NUM_GROUPS],
-    adam: [AdamConfig; NUM_GROUPS],
+    adam: PerGroup<AdamConfig>,
     pool: rayon::ThreadPool,
     name: String,
     store: ImageStore,
@@ -540,7 +540,7 @@ impl ParallelCpuBackend {
     /// A backend over `data` with `threads` worker threads (0 = all cores).
     pub fn new(
         data: ModelData,
-        adam: [AdamConfig; NUM_GROUPS],
+        adam: PerGroup<AdamConfig>,
         threads: usize,
     ) -> Result<Self, CpuError> {
         let pool = rayon::ThreadPoolBuilder::new()
@@ -582,7 +582,7 @@ impl ParallelCpuBackend {
     }
 
     /// The Adam settings per group.
-    pub fn adam(&self) -> &[AdamConfig; NUM_GROUPS] {
+    pub fn adam(&self) -> &PerGroup<AdamConfig> {
         &self.adam
     }
 
@@ -991,12 +991,12 @@ impl Backend for ParallelCpuBackend {
                 himap_core::Error::InvalidConfig("learning rate must be finite and >= 0").into(),
             );
         }
-        self.adam[group as usize].lr = lr;
+        self.adam[group].lr = lr;
         Ok(())
     }
 
     fn adam_lr(&self, group: Group) -> f32 {
-        self.adam[group as usize].lr
+        self.adam[group].lr
     }
 
     fn set_min_transmittance(&mut self, t: f32) -> Result<(), CpuError> {

@@ -28,7 +28,7 @@ use himap_core::adam::AdamConfig;
 use himap_core::camera::Pose;
 use himap_core::grid::{GridConfig, GridKind, MAX_LEVELS};
 use himap_core::mapper::{KeyframeOverflow, MapperConfig};
-use himap_core::model::{ModelConfig, NUM_GROUPS};
+use himap_core::model::{ModelConfig, PerGroup};
 use himap_core::render::RenderMode;
 use himap_core::warp::WarpConfig;
 use himap_core::Aabb;
@@ -694,15 +694,15 @@ impl Config {
     }
 
     /// Adam settings per group, in `Group::ALL` order.
-    pub fn adam_config(&self) -> [AdamConfig; NUM_GROUPS] {
+    pub fn adam_config(&self) -> PerGroup<AdamConfig> {
         let a = &self.adam;
-        [
+        PerGroup([
             AdamConfig::new(a.grid_lr),
             AdamConfig::new(a.grid_lr),
             AdamConfig::new(a.mlp_lr),
             AdamConfig::new(a.appearance_mlp_lr.unwrap_or(a.mlp_lr)),
             AdamConfig::new(a.beta_lr),
-        ]
+        ])
     }
 
     /// The scene box (see the module documentation) and where it came from, knowing only the

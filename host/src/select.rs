@@ -11,7 +11,7 @@
 use std::str::FromStr;
 
 use himap_core::adam::AdamConfig;
-use himap_core::model::{Group, NUM_GROUPS};
+use himap_core::model::{Group, PerGroup};
 use himap_core::step::{Backend, ImageStore};
 use himap_vulkan::{DeviceKind, VulkanBackend, VulkanError};
 
@@ -188,7 +188,7 @@ impl MapBackend for VulkanBackend {
 /// carries them, see [`VulkanBackend::new`]) with `store` image slots.
 pub fn vulkan_backend(
     data: &ModelData,
-    adam: [AdamConfig; NUM_GROUPS],
+    adam: PerGroup<AdamConfig>,
     store: ImageStore,
 ) -> Result<VulkanBackend, VulkanError> {
     VulkanBackend::new(data.layout, data.param_slices(), adam)?.with_images(store)

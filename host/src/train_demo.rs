@@ -2,7 +2,7 @@
 //! rays from a ring of viewpoints. It needs no data and prints the loss going down; it is the
 //! smallest end-to-end exercise of the field, the renderer, the losses, the gradients and Adam.
 
-use himap_core::model::{LossConfig, ModelLayout, Ray, RayResult};
+use himap_core::model::{Group, LossConfig, ModelLayout, Ray, RayResult};
 use himap_core::rng::SplitMix;
 use himap_core::step::Backend;
 
@@ -85,9 +85,9 @@ pub fn run(
     let data = ModelData::new(layout, seed as u32)?;
     let mut adam = himap_core::step::paper_adam();
     // A short run needs faster decoders than the paper's online 1e-5.
-    adam[2].lr = 1e-3;
-    adam[3].lr = 1e-3;
-    adam[4].lr = 1e-3;
+    adam[Group::GeometryMlp].lr = 1e-3;
+    adam[Group::AppearanceMlp].lr = 1e-3;
+    adam[Group::Beta].lr = 1e-3;
     let mut backend = ParallelCpuBackend::new(data, adam, threads)?;
     let mut rng = SplitMix::new(seed);
     let mut results = vec![RayResult::default(); rays];

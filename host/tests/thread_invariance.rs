@@ -135,7 +135,7 @@ fn nonfinite_steps_are_rejected_and_leave_the_state_as_it_was() {
     let rays = random_rays(120, 3);
     let loss = loss_for(1, rays.len());
     let adam = paper_adam();
-    let lr = adam[Group::GeometryMlp as usize].lr;
+    let lr = adam[Group::GeometryMlp].lr;
     let (mut params, mut m, mut v) = (data.params.clone(), data.m.clone(), data.v.clone());
     let mut grads: [Vec<i64>; NUM_GROUPS] = layout.group_lens().map(|n| vec![0; n]);
     let reference = {

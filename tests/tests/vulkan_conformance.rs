@@ -14,7 +14,9 @@ use himap::synth::{synth_intrinsics, synth_pose, Scene};
 use himap_core::adam::AdamConfig;
 use himap_core::camera::{Intrinsics, Pose};
 use himap_core::mapping::{pack_rgba8, MappingLoss, PixelResult, PixelSample};
-use himap_core::model::{Group, LossConfig, ModelConfig, ModelLayout, Ray, RayResult, NUM_GROUPS};
+use himap_core::model::{
+    Group, LossConfig, ModelConfig, ModelLayout, PerGroup, Ray, RayResult, NUM_GROUPS,
+};
 use himap_core::render::RenderMode;
 use himap_core::step::{paper_adam, Backend, CpuBackend, GroupState, ImageStore, MapBatch};
 use himap_core::warp::WarpConfig;
@@ -24,7 +26,7 @@ use himap_vulkan::{VulkanBackend, VulkanError, VulkanOptions};
 /// The Vulkan backend over `data`'s parameters, or `None` (with the reason printed) when this
 /// machine has no usable Vulkan device. With `HIMAP_REQUIRE_VULKAN=1` a missing device is a
 /// test failure. Errors that are not about device availability always fail.
-fn vulkan_or_skip(data: &ModelData, adam: [AdamConfig; NUM_GROUPS]) -> Option<VulkanBackend> {
+fn vulkan_or_skip(data: &ModelData, adam: PerGroup<AdamConfig>) -> Option<VulkanBackend> {
     let params = data.param_slices();
     match VulkanBackend::new(data.layout, params, adam) {
         Ok(b) => Some(b),
@@ -133,7 +135,7 @@ impl CpuState {
         }
     }
 
-    fn backend(&mut self, adam: [AdamConfig; NUM_GROUPS]) -> CpuBackend<'_> {
+    fn backend(&mut self, adam: PerGroup<AdamConfig>) -> CpuBackend<'_> {
         let [p0, p1, p2, p3, p4] = &mut self.params;
         let [m0, m1, m2, m3, m4] = &mut self.m;
         let [v0, v1, v2, v3, v4] = &mut self.v;
@@ -164,14 +166,14 @@ fn loss_config(seed: u32, n: usize) -> LossConfig {
 }
 
 /// Larger learning rates than the paper's so that 50 steps move every group visibly.
-fn test_adam() -> [AdamConfig; NUM_GROUPS] {
-    [
+fn test_adam() -> PerGroup<AdamConfig> {
+    PerGroup([
         AdamConfig::new(0.02),
         AdamConfig::new(0.02),
         AdamConfig::new(1e-3),
         AdamConfig::new(1e-3),
         AdamConfig::new(1e-2),
-    ]
+    ])
 }
 
 #[test]
@@ -369,7 +371,7 @@ fn nonfinite_steps_are_rejected_like_the_cpu() {
     let Some(mut gpu) = vulkan_or_skip(&data, adam) else {
         return;
     };
-    let lr = adam[Group::GeometryMlp as usize].lr;
+    let lr = adam[Group::GeometryMlp].lr;
     let loss = loss_config(4, rays.len());
     let mut cpu_state = CpuState::new(&data);
     let sc = nonfinite_sequence(&mut cpu_state.backend(adam), &rays, &loss, lr).unwrap();

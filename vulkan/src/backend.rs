@@ -66,7 +66,7 @@ pub struct VulkanOptions {
 pub struct VulkanBackend {
     layout: ModelLayout,
     name: String,
-    adam: [AdamConfig; NUM_GROUPS],
+    adam: PerGroup<AdamConfig>,
     t: u32,
     max_groups: u32,
     max_binding: u64,
@@ -115,7 +115,7 @@ impl VulkanBackend {
     pub fn new(
         layout: ModelLayout,
         params: [&[f32]; NUM_GROUPS],
-        adam: [AdamConfig; NUM_GROUPS],
+        adam: PerGroup<AdamConfig>,
     ) -> Result<Self, VulkanError> {
         Self::with_options(layout, params, adam, VulkanOptions::default())
     }
@@ -124,7 +124,7 @@ impl VulkanBackend {
     pub fn with_options(
         layout: ModelLayout,
         params: [&[f32]; NUM_GROUPS],
-        adam: [AdamConfig; NUM_GROUPS],
+        adam: PerGroup<AdamConfig>,
         options: VulkanOptions,
     ) -> Result<Self, VulkanError> {
         let lens = layout.group_lens();
@@ -887,12 +887,12 @@ impl Backend for VulkanBackend {
                 himap_core::Error::InvalidConfig("learning rate must be finite and >= 0").into(),
             );
         }
-        self.adam[group as usize].lr = lr;
+        self.adam[group].lr = lr;
         Ok(())
     }
 
     fn adam_lr(&self, group: Group) -> f32 {
-        self.adam[group as usize].lr
+        self.adam[group].lr
     }
 
     fn set_min_transmittance(&mut self, t: f32) -> Result<(), VulkanError> {
