@@ -321,6 +321,23 @@ fn centre_valid(pu: f32, pv: f32, z: f32, w: u32, h: u32, margin: f32) -> bool {
     z > MIN_Z && pu > margin && pu < umax && pv > margin && pv < vmax
 }
 
+/// The derivative of the projection `(u, v)` of the camera-space point `x` with respect to
+/// depth, along the camera-space direction `xd`; zero where `x` is not in front (`z <= MIN_Z`).
+/// The division runs for every point and the result is selected, so a CPU computes it in
+/// lanes; a discarded value never reaches the output.
+#[inline(always)]
+fn projection_derivative(k: &Intrinsics, x: [f32; 3], xd: [f32; 3]) -> (f32, f32) {
+    let iz = 1.0 / x[2];
+    let zr = xd[2] * iz;
+    let dpu = k.fx * (xd[0] - x[0] * zr) * iz;
+    let dpv = k.fy * (xd[1] - x[1] * zr) * iz;
+    if x[2] > MIN_Z {
+        (dpu, dpv)
+    } else {
+        (0.0, 0.0)
+    }
+}
+
 /// The per-view patch stage of [`warp_pixel`] for a full patch (`half == MAX_HALF`), as a
 /// CPU runs it: the projections of all patch points first, in straight passes over
 /// structure-of-arrays copies that vectorise (the divisions 8 or 16 lanes at a time), then the
@@ -340,36 +357,15 @@ fn warp_view_lanes<I: FrameImages + ?Sized>(
     dtgt: &mut Patch,
 ) {
     let (w, h) = images.size();
-    let m = &pose_j.m;
     let mut pu = [0.0f32; PATCH_PIXELS];
     let mut pv = [0.0f32; PATCH_PIXELS];
     let mut dpu = [0.0f32; PATCH_PIXELS];
     let mut dpv = [0.0f32; PATCH_PIXELS];
     for p in 0..PATCH_PIXELS {
-        // Pose::inverse_transform, inverse_rotate and Intrinsics::project, written out.
-        let q = [xw[p][0] - m[0][3], xw[p][1] - m[1][3], xw[p][2] - m[2][3]];
-        let x0 = m[0][0] * q[0] + m[1][0] * q[1] + m[2][0] * q[2];
-        let x1 = m[0][1] * q[0] + m[1][1] * q[1] + m[2][1] * q[2];
-        let z = m[0][2] * q[0] + m[1][2] * q[1] + m[2][2] * q[2];
-        let d = dxw[p];
-        let xd0 = m[0][0] * d[0] + m[1][0] * d[1] + m[2][0] * d[2];
-        let xd1 = m[0][1] * d[0] + m[1][1] * d[1] + m[2][1] * d[2];
-        let xd2 = m[0][2] * d[0] + m[1][2] * d[1] + m[2][2] * d[2];
-        pu[p] = k.fx * x0 / z + k.cx;
-        pv[p] = k.fy * x1 / z + k.cy;
-        let iz = 1.0 / z;
-        let zr = xd2 * iz;
-        let front = z > MIN_Z;
-        dpu[p] = if front {
-            k.fx * (xd0 - x0 * zr) * iz
-        } else {
-            0.0
-        };
-        dpv[p] = if front {
-            k.fy * (xd1 - x1 * zr) * iz
-        } else {
-            0.0
-        };
+        let x = pose_j.inverse_transform(xw[p]);
+        let xd = inverse_rotate(pose_j, dxw[p]);
+        (pu[p], pv[p], _) = k.project(x);
+        (dpu[p], dpv[p]) = projection_derivative(k, x, xd);
     }
     for p in 0..PATCH_PIXELS {
         let (val, du, dv) = sample_bilinear(images, j, w, h, pu[p], pv[p]);
@@ -535,17 +531,10 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
                     let p = r * PATCH + col;
                     let x = pose_j.inverse_transform(xw[p]);
                     let xd = inverse_rotate(&pose_j, dxw[p]);
-                    let (pu, pv, z) = k.project(x);
+                    let (pu, pv, _) = k.project(x);
                     let (val, du, dv) = sample_bilinear(images, j, w, h, pu, pv);
                     tgt[p] = val;
-                    let mut dpu = 0.0f32;
-                    let mut dpv = 0.0f32;
-                    if z > MIN_Z {
-                        let iz = 1.0 / z;
-                        let zr = xd[2] * iz;
-                        dpu = k.fx * (xd[0] - x[0] * zr) * iz;
-                        dpv = k.fy * (xd[1] - x[1] * zr) * iz;
-                    }
+                    let (dpu, dpv) = projection_derivative(k, x, xd);
                     let mut c = 0;
                     while c < 3 {
                         dtgt[p][c] = du[c] * dpu + dv[c] * dpv;

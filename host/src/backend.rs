@@ -395,34 +395,31 @@ impl SlotPixels for HostPixels<'_> {
 /// on any value, nothing on other architectures).
 #[inline(always)]
 fn prefetch_line<T>(row: &[T]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        // SAFETY: prefetching is a hint that never faults; the address is `row`'s first
-        // element.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(row.as_ptr().cast::<i8>()) };
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = row;
+    prefetch_lines(row, 1);
 }
 
-/// Asks the CPU to bring the first two cache lines of `row` towards its L1 cache (a hint: no
-/// effect on any value, nothing on other architectures).
+/// Asks the CPU to bring the first two cache lines of `row` towards its L1 cache.
 #[inline(always)]
 fn prefetch_rows<T>(row: &[T]) {
+    prefetch_lines(row, 2);
+}
+
+/// Prefetches `lines` consecutive 64-byte cache lines from `row`'s start (a hint that never
+/// faults and changes no value; nothing on other architectures).
+#[inline(always)]
+fn prefetch_lines<T>(row: &[T], lines: usize) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
         let p = row.as_ptr().cast::<i8>();
-        // SAFETY: prefetching is a hint that never faults; both addresses stay within or one
-        // cache line past `row`'s allocation, computed with wrapping arithmetic.
-        unsafe {
-            _mm_prefetch::<_MM_HINT_T0>(p);
-            _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64));
+        for l in 0..lines {
+            // SAFETY: prefetching is a hint that never faults; the addresses are computed with
+            // wrapping arithmetic and stay within or just past `row`'s allocation.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64 * l)) };
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = row;
+    let _ = (row, lines);
 }
 
 /// Rows of at most this many contributions are converted inline, one at a time.
