@@ -215,7 +215,7 @@ pub fn summarize_pixels(results: &[PixelResult], t: u32) -> StepStats {
 /// The single-threaded reference backend: every other backend must match it bit for bit.
 pub struct CpuBackend<'a> {
     layout: ModelLayout,
-    groups: [GroupState<'a>; NUM_GROUPS],
+    groups: PerGroup<GroupState<'a>>,
     adam: PerGroup<AdamConfig>,
     t: u32,
     store: ImageStore,
@@ -226,7 +226,7 @@ impl<'a> CpuBackend<'a> {
     /// Checks every buffer length against the layout.
     pub fn new(
         layout: ModelLayout,
-        groups: [GroupState<'a>; NUM_GROUPS],
+        groups: PerGroup<GroupState<'a>>,
         adam: PerGroup<AdamConfig>,
     ) -> Result<Self, Error> {
         let lens = layout.group_lens();
@@ -266,7 +266,7 @@ impl<'a> CpuBackend<'a> {
     ) -> Result<StepStats, Error> {
         check_len("results", results.len(), batch.pixels.len())?;
         let slots = window_slots(batch, &self.store)?;
-        let [g0, g1, g2, g3, g4] = &mut self.groups;
+        let [g0, g1, g2, g3, g4] = &mut self.groups.0;
         let params = Params {
             geometry_grid: &*g0.params,
             appearance_grid: &*g1.params,
@@ -318,12 +318,12 @@ impl<'a> CpuBackend<'a> {
 
     /// Read access to a group's parameters.
     pub fn params(&self, group: Group) -> &[f32] {
-        self.groups[group as usize].params
+        self.groups[group].params
     }
 
     /// Read access to a group's fixed-point gradient.
     pub fn grads(&self, group: Group) -> &[i64] {
-        self.groups[group as usize].grad
+        self.groups[group].grad
     }
 
     /// Zeroes every gradient buffer.
@@ -343,7 +343,7 @@ impl<'a> CpuBackend<'a> {
         results: &mut [RayResult],
     ) -> Result<StepStats, Error> {
         check_len("results", results.len(), rays.len())?;
-        let [g0, g1, g2, g3, g4] = &mut self.groups;
+        let [g0, g1, g2, g3, g4] = &mut self.groups.0;
         let params = Params {
             geometry_grid: &*g0.params,
             appearance_grid: &*g1.params,
@@ -451,7 +451,7 @@ impl Backend for CpuBackend<'_> {
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), Error> {
         check_len("results", results.len(), rays.len())?;
-        let [g0, g1, g2, g3, g4] = &self.groups;
+        let [g0, g1, g2, g3, g4] = &self.groups.0;
         let params = Params {
             geometry_grid: &*g0.params,
             appearance_grid: &*g1.params,
@@ -483,21 +483,21 @@ impl Backend for CpuBackend<'_> {
     }
 
     fn read_params(&mut self, group: Group, out: &mut [f32]) -> Result<(), Error> {
-        let src = &*self.groups[group as usize].params;
+        let src = &*self.groups[group].params;
         check_len(group.name(), out.len(), src.len())?;
         out.copy_from_slice(src);
         Ok(())
     }
 
     fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), Error> {
-        let src = &*self.groups[group as usize].grad;
+        let src = &*self.groups[group].grad;
         check_len(group.name(), out.len(), src.len())?;
         out.copy_from_slice(src);
         Ok(())
     }
 
     fn write_params(&mut self, group: Group, data: &[f32], reset_adam: bool) -> Result<(), Error> {
-        let st = &mut self.groups[group as usize];
+        let st = &mut self.groups[group];
         check_len(group.name(), data.len(), st.params.len())?;
         st.params.copy_from_slice(data);
         if reset_adam {
@@ -574,7 +574,7 @@ pub fn group_states<'a, F: AsMut<[f32]>, I: AsMut<[i64]>>(
     m: &'a mut [F; NUM_GROUPS],
     v: &'a mut [F; NUM_GROUPS],
     grads: &'a mut [I; NUM_GROUPS],
-) -> [GroupState<'a>; NUM_GROUPS] {
+) -> PerGroup<GroupState<'a>> {
     let [p0, p1, p2, p3, p4] = params;
     let [m0, m1, m2, m3, m4] = m;
     let [v0, v1, v2, v3, v4] = v;
@@ -585,11 +585,11 @@ pub fn group_states<'a, F: AsMut<[f32]>, I: AsMut<[i64]>>(
         v: v.as_mut(),
         grad: g.as_mut(),
     };
-    [
+    PerGroup([
         s(p0, m0, v0, g0),
         s(p1, m1, v1, g1),
         s(p2, m2, v2, g2),
         s(p3, m3, v3, g3),
         s(p4, m4, v4, g4),
-    ]
+    ])
 }

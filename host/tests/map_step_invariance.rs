@@ -9,7 +9,7 @@ use himap_core::mapping::{MappingLoss, PixelResult, PixelSample};
 use himap_core::model::{Group, ModelLayout, NUM_GROUPS};
 use himap_core::render::RenderMode;
 use himap_core::rng::SplitMix;
-use himap_core::step::{paper_adam, Backend, CpuBackend, GroupState, ImageStore, MapBatch};
+use himap_core::step::{paper_adam, Backend, CpuBackend, ImageStore, MapBatch};
 use himap_core::warp::WarpConfig;
 
 const W: u32 = 48;
@@ -113,19 +113,7 @@ fn map_step_is_bit_identical_to_reference_for_1_2_8_threads() {
     let mut slot_buf = vec![0u32; store.total_len()];
     let mut ref_results = Vec::new();
     {
-        let groups: Vec<GroupState<'_>> = p
-            .iter_mut()
-            .zip(m.iter_mut())
-            .zip(v.iter_mut())
-            .zip(g.iter_mut())
-            .map(|(((p, m), v), g)| GroupState {
-                params: p,
-                m,
-                v,
-                grad: g,
-            })
-            .collect();
-        let groups: [GroupState<'_>; NUM_GROUPS] = groups.try_into().ok().unwrap();
+        let groups = himap_core::step::group_states(&mut p.0, &mut m.0, &mut v.0, &mut g);
         let mut cpu = CpuBackend::new(layout, groups, paper_adam())
             .unwrap()
             .with_images(store, &mut slot_buf)

@@ -18,7 +18,7 @@ use himap_core::model::{
     Group, LossConfig, ModelConfig, ModelLayout, PerGroup, Ray, RayResult, NUM_GROUPS,
 };
 use himap_core::render::RenderMode;
-use himap_core::step::{paper_adam, Backend, CpuBackend, GroupState, ImageStore, MapBatch};
+use himap_core::step::{group_states, paper_adam, Backend, CpuBackend, ImageStore, MapBatch};
 use himap_core::warp::WarpConfig;
 use himap_core::Aabb;
 use himap_vulkan::{VulkanBackend, VulkanError, VulkanOptions};
@@ -114,15 +114,6 @@ struct CpuState {
     grad: [Vec<i64>; NUM_GROUPS],
 }
 
-fn gs<'a>(
-    params: &'a mut [f32],
-    m: &'a mut [f32],
-    v: &'a mut [f32],
-    grad: &'a mut [i64],
-) -> GroupState<'a> {
-    GroupState { params, m, v, grad }
-}
-
 impl CpuState {
     fn new(data: &ModelData) -> Self {
         let lens = data.layout.group_lens();
@@ -136,22 +127,8 @@ impl CpuState {
     }
 
     fn backend(&mut self, adam: PerGroup<AdamConfig>) -> CpuBackend<'_> {
-        let [p0, p1, p2, p3, p4] = &mut self.params;
-        let [m0, m1, m2, m3, m4] = &mut self.m;
-        let [v0, v1, v2, v3, v4] = &mut self.v;
-        let [g0, g1, g2, g3, g4] = &mut self.grad;
-        CpuBackend::new(
-            self.layout,
-            [
-                gs(p0, m0, v0, g0),
-                gs(p1, m1, v1, g1),
-                gs(p2, m2, v2, g2),
-                gs(p3, m3, v3, g3),
-                gs(p4, m4, v4, g4),
-            ],
-            adam,
-        )
-        .expect("cpu backend")
+        let groups = group_states(&mut self.params, &mut self.m, &mut self.v, &mut self.grad);
+        CpuBackend::new(self.layout, groups, adam).expect("cpu backend")
     }
 }
 
