@@ -315,21 +315,22 @@ pub fn grid_init(
     std: f32,
 ) -> Result<(), Error> {
     crate::error::check_len("grid parameters", params.len(), layout.param_count as usize)?;
+    grid_init_part(params, 0, seed, std)
+}
+
+/// The values [`grid_init`] gives parameters `start..start + params.len()` (each depends on
+/// its index alone, so parts of a grid may be filled in parallel with the whole grid's bits).
+/// Errors for a scale that is not finite and non-negative.
+pub fn grid_init_part(params: &mut [f32], start: usize, seed: u32, std: f32) -> Result<(), Error> {
     if !(std.is_finite() && std >= 0.0) {
         return Err(Error::InvalidConfig(
             "grid: init std must be finite and >= 0",
         ));
     }
-    grid_init_part(params, 0, seed, std);
-    Ok(())
-}
-
-/// The values [`grid_init`] gives parameters `start..start + params.len()` (each depends on
-/// its index alone, so parts of a grid may be filled in parallel with the whole grid's bits).
-pub fn grid_init_part(params: &mut [f32], start: usize, seed: u32, std: f32) {
     for (i, p) in params.iter_mut().enumerate() {
         *p = std * crate::rng::normal(seed, 0, (start + i) as u32);
     }
+    Ok(())
 }
 
 // ---------------------------------------------------------------------------------------------

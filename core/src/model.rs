@@ -317,19 +317,13 @@ impl ModelLayout {
         start: usize,
         seed: u32,
     ) -> Result<(), Error> {
-        let std = self.config.grid_init_std;
         if !Self::is_grid(g) || start + params.len() > self.group_len(g) {
             return Err(Error::InvalidConfig(
                 "init_grid_part: a part of a grid group",
             ));
         }
-        if !(std.is_finite() && std >= 0.0) {
-            return Err(Error::InvalidConfig(
-                "grid: init std must be finite and >= 0",
-            ));
-        }
-        grid::grid_init_part(params, start, Self::group_seed(seed, g), std);
-        Ok(())
+        let std = self.config.grid_init_std;
+        grid::grid_init_part(params, start, Self::group_seed(seed, g), std)
     }
 }
 

@@ -458,9 +458,7 @@ pub fn to_fixed_host(g: f32) -> i64 {
 fn add_scaled_row(dst: &mut [i64], g: f32, xs: &[f32]) {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::arch::is_x86_feature_detected!("avx512dq")
-            && std::arch::is_x86_feature_detected!("avx512vl")
-        {
+        if has_avx512_rows() {
             // SAFETY: the CPU supports AVX-512 F, DQ and VL (DQ implies F; checked above).
             return unsafe { add_scaled_row_avx512(dst, g, xs) };
         }
@@ -470,6 +468,14 @@ fn add_scaled_row(dst: &mut [i64], g: f32, xs: &[f32]) {
         }
     }
     add_scaled_row_generic(dst, g, xs)
+}
+
+/// Whether this CPU runs [`add_scaled_row_avx512`] (AVX-512 F, DQ and VL; DQ implies F).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn has_avx512_rows() -> bool {
+    std::arch::is_x86_feature_detected!("avx512dq")
+        && std::arch::is_x86_feature_detected!("avx512vl")
 }
 
 /// [`add_scaled_row`] in AVX-512 lanes, every case of [`fixed::to_fixed`] branch-free: the
@@ -1038,9 +1044,7 @@ mod tests {
     fn avx512_rows_add_the_core_conversions() {
         #[cfg(target_arch = "x86_64")]
         {
-            if !(std::arch::is_x86_feature_detected!("avx512dq")
-                && std::arch::is_x86_feature_detected!("avx512vl"))
-            {
+            if !has_avx512_rows() {
                 eprintln!("skipped: this CPU has no AVX-512 DQ/VL (the AVX2 path is tested)");
                 return;
             }
