@@ -42,6 +42,18 @@ impl AdamConfig {
             eps: 1e-8,
         }
     }
+
+    /// Changes the learning rate ([`crate::step::Backend::set_adam_lr`] of every backend):
+    /// it must be finite and `>= 0`; the moments are not touched.
+    pub fn set_lr(&mut self, lr: f32) -> Result<(), crate::Error> {
+        if !(lr.is_finite() && lr >= 0.0) {
+            return Err(crate::Error::InvalidConfig(
+                "learning rate must be finite and >= 0",
+            ));
+        }
+        self.lr = lr;
+        Ok(())
+    }
 }
 
 /// The scalars of one Adam step of one group, computed once on the host and passed to every

@@ -14,6 +14,7 @@
 #![deny(unsafe_code)]
 
 pub mod adam;
+pub mod batch;
 pub mod camera;
 pub mod error;
 pub mod fixed;

@@ -1230,6 +1230,9 @@ mod tests {
         fn read_grads(&mut self, _: Group, _: &mut [i64]) -> Result<(), Error> {
             Ok(())
         }
+        fn read_adam(&mut self, _: Group, _: &mut [f32], _: &mut [f32]) -> Result<(), Error> {
+            Ok(())
+        }
         fn write_params(&mut self, _: Group, _: &[f32], _: bool) -> Result<(), Error> {
             Ok(())
         }

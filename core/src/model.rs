@@ -380,6 +380,11 @@ impl<S: ModelGradSink> GradSink for GroupSink<'_, S> {
     }
 }
 
+impl ModelGradSink for crate::NullSink {
+    #[inline(always)]
+    fn add(&mut self, _group: Group, _i: usize, _g: f32) {}
+}
+
 /// One training or rendering ray: world origin, unnormalised direction whose camera-z
 /// component is 1 (so t is camera depth), and its targets.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -8,18 +8,17 @@
 //! of the per-ray losses taken in ray order (f32), so it is also independent of scheduling.
 
 use crate::adam::{self, AdamConfig, AdamStep};
+use crate::batch::{run_items, BatchJob, ItemRunner, MapPixels, RenderRays, TrainRays};
 use crate::camera::{Intrinsics, Pose};
 use crate::error::check_len;
 use crate::fixed;
-use crate::mapping::{
-    pixel_train, MappingLoss, PixelResult, PixelSample, WindowImages, WindowView,
-};
+use crate::mapping::{MappingLoss, PixelResult, PixelSample, WindowImages, WindowView};
 use crate::model::{
-    ray_forward, ray_train, Group, LossConfig, ModelGradSink, ModelLayout, Params, PerGroup, Ray,
-    RayCache, RayResult, Recompute, SampleScratch, NUM_GROUPS,
+    Group, LossConfig, ModelGradSink, ModelLayout, Params, PerGroup, Ray, RayCache, RayResult,
+    Recompute, SampleScratch, NUM_GROUPS,
 };
 use crate::warp::MAX_WINDOW;
-use crate::Error;
+use crate::{Error, NullSink};
 
 /// Parameters, Adam moments and the fixed-point gradient of one group, all caller-owned.
 pub struct GroupState<'a> {
@@ -94,6 +93,8 @@ pub trait Backend {
     fn read_params(&mut self, group: Group, out: &mut [f32]) -> Result<(), Self::Error>;
     /// Copies a group's fixed-point gradient of the last step out.
     fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), Self::Error>;
+    /// Copies a group's Adam moments out.
+    fn read_adam(&mut self, group: Group, m: &mut [f32], v: &mut [f32]) -> Result<(), Self::Error>;
     /// Overwrites a group's parameters (and resets its Adam moments when `reset_adam`).
     fn write_params(
         &mut self,
@@ -143,6 +144,23 @@ impl ImageStore {
     /// `u32` words of the whole store (`slots * width * height`).
     pub const fn total_len(&self) -> usize {
         self.slot_len() * self.slots as usize
+    }
+
+    /// The words of image slot `slot` in the whole store, for a frame of `len` pixels
+    /// ([`Backend::upload_frame`] of every backend): the frame must fill one slot exactly and
+    /// the slot must exist.
+    pub fn slot_range(&self, slot: u32, len: usize) -> Result<core::ops::Range<usize>, Error> {
+        let n = self.slot_len();
+        check_len("frame pixels", len, n)?;
+        if slot >= self.slots {
+            return Err(Error::Capacity {
+                what: "image slot index",
+                needed: slot as u64 + 1,
+                capacity: self.slots as u64,
+            });
+        }
+        let o = slot as usize * n;
+        Ok(o..o + n)
     }
 }
 
@@ -264,51 +282,24 @@ impl<'a> CpuBackend<'a> {
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
     ) -> Result<StepStats, Error> {
-        check_len("results", results.len(), batch.pixels.len())?;
         let slots = window_slots(batch, &self.store)?;
-        let [g0, g1, g2, g3, g4] = &mut self.groups.0;
-        let params = Params {
-            geometry_grid: &*g0.params,
-            appearance_grid: &*g1.params,
-            geometry_mlp: &*g2.params,
-            appearance_mlp: &*g3.params,
-            beta: g4.params[0],
-        };
-        let mut sink = FixedModelSink::new([
-            &mut *g0.grad,
-            &mut *g1.grad,
-            &mut *g2.grad,
-            &mut *g3.grad,
-            &mut *g4.grad,
-        ]);
         let images = WindowImages {
             width: self.store.width,
             height: self.store.height,
             slots,
             pixels: &*self.images,
         };
-        let window = WindowView {
-            k: batch.k,
-            poses: batch.poses,
-            images: &images,
+        let job = MapPixels {
+            pixels: batch.pixels,
+            window: WindowView {
+                k: batch.k,
+                poses: batch.poses,
+                images: &images,
+            },
+            loss: &batch.loss,
         };
-        let mut cache = RayCache::new();
-        let mut scratch = SampleScratch::new();
-        for (i, (px, res)) in batch.pixels.iter().zip(results.iter_mut()).enumerate() {
-            *res = pixel_train(
-                &self.layout,
-                &params,
-                &window,
-                *px,
-                i as u32,
-                &batch.loss,
-                &mut cache,
-                &mut scratch,
-                &mut Recompute,
-                &mut sink,
-            );
-        }
-        Ok(summarize_pixels(results, self.t))
+        let (params, mut sink) = params_and_sink(&mut self.groups);
+        drive(&self.layout, &params, &mut sink, &job, results, self.t)
     }
 
     /// Adam steps taken so far.
@@ -342,38 +333,9 @@ impl<'a> CpuBackend<'a> {
         loss: &LossConfig,
         results: &mut [RayResult],
     ) -> Result<StepStats, Error> {
-        check_len("results", results.len(), rays.len())?;
-        let [g0, g1, g2, g3, g4] = &mut self.groups.0;
-        let params = Params {
-            geometry_grid: &*g0.params,
-            appearance_grid: &*g1.params,
-            geometry_mlp: &*g2.params,
-            appearance_mlp: &*g3.params,
-            beta: g4.params[0],
-        };
-        let mut sink = FixedModelSink::new([
-            &mut *g0.grad,
-            &mut *g1.grad,
-            &mut *g2.grad,
-            &mut *g3.grad,
-            &mut *g4.grad,
-        ]);
-        let mut cache = RayCache::new();
-        let mut scratch = SampleScratch::new();
-        for (i, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
-            *res = ray_train(
-                &self.layout,
-                &params,
-                ray,
-                i as u32,
-                loss,
-                &mut cache,
-                &mut scratch,
-                &mut Recompute,
-                &mut sink,
-            );
-        }
-        Ok(summarize(results, self.t))
+        let (params, mut sink) = params_and_sink(&mut self.groups);
+        let job = TrainRays { rays, loss };
+        drive(&self.layout, &params, &mut sink, &job, results, self.t)
     }
 
     /// Adam on every group from the accumulated gradients.
@@ -406,6 +368,53 @@ impl<'a> CpuBackend<'a> {
         stats.t = self.t;
         Ok(())
     }
+}
+
+/// The groups' parameters for reading and a sink into their fixed-point gradients.
+fn params_and_sink<'s>(
+    groups: &'s mut PerGroup<GroupState<'_>>,
+) -> (Params<'s, [f32]>, FixedModelSink<'s, 's>) {
+    let [g0, g1, g2, g3, g4] = &mut groups.0;
+    let params = Params {
+        geometry_grid: &*g0.params,
+        appearance_grid: &*g1.params,
+        geometry_mlp: &*g2.params,
+        appearance_mlp: &*g3.params,
+        beta: g4.params[0],
+    };
+    let sink = FixedModelSink::new([
+        &mut *g0.grad,
+        &mut *g1.grad,
+        &mut *g2.grad,
+        &mut *g3.grad,
+        &mut *g4.grad,
+    ]);
+    (params, sink)
+}
+
+/// Runs a whole batch in order on this thread (the reference's driver: one run, the
+/// recomputing tape) and summarizes it.
+fn drive<J: BatchJob, S: ModelGradSink>(
+    layout: &ModelLayout,
+    params: &Params<'_, [f32]>,
+    sink: &mut S,
+    job: &J,
+    results: &mut [J::Output],
+    t: u32,
+) -> Result<StepStats, Error> {
+    check_len("results", results.len(), job.len())?;
+    let mut cache = RayCache::new();
+    let mut scratch = SampleScratch::new();
+    let mut runner = ItemRunner {
+        layout,
+        params,
+        cache: &mut cache,
+        scratch: &mut scratch,
+        tape: &mut Recompute,
+        sink,
+    };
+    run_items(job, &mut runner, 0, results);
+    Ok(J::summarize(results, t))
 }
 
 /// Step statistics from per-ray results (loss summed in ray order).
@@ -450,61 +459,29 @@ impl Backend for CpuBackend<'_> {
     }
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), Error> {
-        check_len("results", results.len(), rays.len())?;
-        let [g0, g1, g2, g3, g4] = &self.groups.0;
-        let params = Params {
-            geometry_grid: &*g0.params,
-            appearance_grid: &*g1.params,
-            geometry_mlp: &*g2.params,
-            appearance_mlp: &*g3.params,
-            beta: g4.params[0],
-        };
-        let mut cache = RayCache::new();
-        let mut scratch = SampleScratch::new();
-        for (i, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
-            ray_forward(
-                &self.layout,
-                &params,
-                ray,
-                i as u32,
-                0,
-                false,
-                &mut cache,
-                &mut scratch,
-            );
-            *res = RayResult {
-                color: cache.out.color,
-                depth: cache.out.depth,
-                opacity: cache.out.opacity,
-                loss: 0.0,
-            };
-        }
+        let (params, _) = params_and_sink(&mut self.groups);
+        let job = RenderRays { rays };
+        drive(&self.layout, &params, &mut NullSink, &job, results, self.t)?;
         Ok(())
     }
 
     fn read_params(&mut self, group: Group, out: &mut [f32]) -> Result<(), Error> {
-        let src = &*self.groups[group].params;
-        check_len(group.name(), out.len(), src.len())?;
-        out.copy_from_slice(src);
-        Ok(())
+        copy_group(group, out, self.groups[group].params)
     }
 
     fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), Error> {
-        let src = &*self.groups[group].grad;
-        check_len(group.name(), out.len(), src.len())?;
-        out.copy_from_slice(src);
-        Ok(())
+        copy_group(group, out, self.groups[group].grad)
+    }
+
+    fn read_adam(&mut self, group: Group, m: &mut [f32], v: &mut [f32]) -> Result<(), Error> {
+        let st = &self.groups[group];
+        copy_group(group, m, st.m)?;
+        copy_group(group, v, st.v)
     }
 
     fn write_params(&mut self, group: Group, data: &[f32], reset_adam: bool) -> Result<(), Error> {
         let st = &mut self.groups[group];
-        check_len(group.name(), data.len(), st.params.len())?;
-        st.params.copy_from_slice(data);
-        if reset_adam {
-            st.m.fill(0.0);
-            st.v.fill(0.0);
-        }
-        Ok(())
+        write_group(group, data, st.params, st.m, st.v, reset_adam)
     }
 
     fn image_store(&self) -> ImageStore {
@@ -512,17 +489,8 @@ impl Backend for CpuBackend<'_> {
     }
 
     fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), Error> {
-        let n = self.store.slot_len();
-        check_len("frame pixels", rgba.len(), n)?;
-        if slot >= self.store.slots {
-            return Err(Error::Capacity {
-                what: "image slot index",
-                needed: slot as u64 + 1,
-                capacity: self.store.slots as u64,
-            });
-        }
-        let o = slot as usize * n;
-        self.images[o..o + n].copy_from_slice(rgba);
+        let r = self.store.slot_range(slot, rgba.len())?;
+        self.images[r].copy_from_slice(rgba);
         Ok(())
     }
 
@@ -538,13 +506,7 @@ impl Backend for CpuBackend<'_> {
     }
 
     fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), Error> {
-        if !(lr.is_finite() && lr >= 0.0) {
-            return Err(Error::InvalidConfig(
-                "learning rate must be finite and >= 0",
-            ));
-        }
-        self.adam[group].lr = lr;
-        Ok(())
+        self.adam[group].set_lr(lr)
     }
 
     fn adam_lr(&self, group: Group) -> f32 {
@@ -554,6 +516,33 @@ impl Backend for CpuBackend<'_> {
     fn set_min_transmittance(&mut self, t: f32) -> Result<(), Error> {
         self.layout.set_min_transmittance(t)
     }
+}
+
+/// Copies a group's buffer out ([`Backend::read_params`] / [`Backend::read_grads`] of a
+/// backend in host memory): `out` must have the buffer's length.
+pub fn copy_group<T: Copy>(group: Group, out: &mut [T], src: &[T]) -> Result<(), Error> {
+    check_len(group.name(), out.len(), src.len())?;
+    out.copy_from_slice(src);
+    Ok(())
+}
+
+/// Overwrites a group's parameters and, when `reset_adam`, zeroes its Adam moments
+/// ([`Backend::write_params`] of a backend in host memory).
+pub fn write_group(
+    group: Group,
+    data: &[f32],
+    params: &mut [f32],
+    m: &mut [f32],
+    v: &mut [f32],
+    reset_adam: bool,
+) -> Result<(), Error> {
+    check_len(group.name(), data.len(), params.len())?;
+    params.copy_from_slice(data);
+    if reset_adam {
+        m.fill(0.0);
+        v.fill(0.0);
+    }
+    Ok(())
 }
 
 /// Default Adam settings per group (the paper's: grids 0.01, MLPs 1e-5; beta with the MLPs).

@@ -10,27 +10,22 @@
 use std::sync::{Mutex, MutexGuard};
 
 use himap_core::adam::{AdamConfig, AdamStep};
+use himap_core::batch::{run_items, BatchJob, ItemRunner, MapPixels, RenderRays, TrainRays};
 use himap_core::fixed;
-use himap_core::mapping::{pixel_train, PixelResult, SlotPixels, WindowImages, WindowView};
+use himap_core::mapping::{PixelResult, SlotPixels, WindowImages, WindowView};
 use himap_core::mlp::{MlpScratch, MAX_WIDTH};
 use himap_core::model::{
-    color_at, ray_forward_taped, ray_train, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout,
-    Params, PerGroup, Ray, RayCache, RayResult, SampleScratch, StoredTape, NUM_GROUPS,
+    color_at, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout, Params, PerGroup, Ray,
+    RayCache, RayResult, SampleScratch, StoredTape, NUM_GROUPS,
 };
 use himap_core::render::MAX_SAMPLES;
 use himap_core::step::{
-    summarize, summarize_pixels, window_slots, Backend, ImageStore, MapBatch, StepStats,
+    copy_group, window_slots, write_group, Backend, ImageStore, MapBatch, StepStats,
 };
 use rayon::prelude::*;
 
 /// Rays per parallel work item.
 const CHUNK: usize = 32;
-
-/// Chunk `c` of [`CHUNK`] items of `items`.
-fn chunk_of<T>(items: &[T], c: usize) -> &[T] {
-    let a = (c * CHUNK).min(items.len());
-    &items[a..(a + CHUNK).min(items.len())]
-}
 
 /// An output slice cut into chunks of [`CHUNK`] that parallel work items fill by index.
 struct ChunkedOut<'a, T> {
@@ -610,52 +605,61 @@ impl ParallelCpuBackend {
         });
     }
 
-    /// Forward, losses and backward of a mapping batch into the workers' gradient buffers,
-    /// with the chunking of [`Self::accumulate`].
+    /// Runs a batch on the pool: its items cut into chunks of [`CHUNK`] that run on whichever
+    /// thread is free, each on that thread's tape and into its gradient buffers; item `i`
+    /// keeps its index as its id ([`himap_core::batch`]), so the contributions do not depend
+    /// on the schedule. Returns the batch's statistics (before Adam).
+    fn run_job<J>(&self, job: &J, results: &mut [J::Output]) -> Result<StepStats, CpuError>
+    where
+        J: BatchJob + Sync,
+        J::Output: Send,
+    {
+        himap_core::error::check_len("results", results.len(), job.len())?;
+        let layout = self.data.layout;
+        let params = self.data.view();
+        let wt = self.data.transposed_mlps();
+        let out = ChunkedOut::new(results);
+        self.for_each_chunk(out.chunks(), |c, w| {
+            let mut results = out.chunk(c);
+            w.run(&wt, |cache, scratch, tape, sink| {
+                let mut runner = ItemRunner {
+                    layout: &layout,
+                    params: &params,
+                    cache,
+                    scratch,
+                    tape,
+                    sink,
+                };
+                run_items(job, &mut runner, c * CHUNK, &mut results);
+            });
+        });
+        drop(out);
+        Ok(J::summarize(results, self.data.t))
+    }
+
+    /// A mapping batch as a [`MapPixels`] job over the backend's image slots.
     fn accumulate_pixels(
-        &mut self,
+        &self,
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
     ) -> Result<StepStats, CpuError> {
-        himap_core::error::check_len("results", results.len(), batch.pixels.len())?;
         let slots = window_slots(batch, &self.store)?;
-        let layout = self.data.layout;
-        let params = self.data.view();
         let images = WindowImages {
             width: self.store.width,
             height: self.store.height,
             slots,
             pixels: &HostPixels(&self.images[..]),
         };
-        let window = WindowView {
-            k: batch.k,
-            poses: batch.poses,
-            images: &images,
+        let job = MapPixels {
+            pixels: batch.pixels,
+            window: WindowView {
+                k: batch.k,
+                poses: batch.poses,
+                images: &images,
+            },
+            loss: &batch.loss,
         };
-        let wt = self.data.transposed_mlps();
-        let out = ChunkedOut::new(results);
-        self.for_each_chunk(out.chunks(), |c, w| {
-            let pixels = chunk_of(batch.pixels, c);
-            let mut results = out.chunk(c);
-            w.run(&wt, |cache, scratch, tape, sink| {
-                for (k, (px, res)) in pixels.iter().zip(results.iter_mut()).enumerate() {
-                    *res = pixel_train(
-                        &layout,
-                        &params,
-                        &window,
-                        *px,
-                        (c * CHUNK + k) as u32,
-                        &batch.loss,
-                        cache,
-                        scratch,
-                        tape,
-                        sink,
-                    );
-                }
-            });
-        });
-        drop(out);
-        Ok(summarize_pixels(results, self.data.t))
+        self.run_job(&job, results)
     }
 
     /// The model data (parameters and Adam state).
@@ -671,43 +675,6 @@ impl ParallelCpuBackend {
     /// Threads in the pool.
     pub fn threads(&self) -> usize {
         self.pool.current_num_threads()
-    }
-
-    /// Forward, loss and backward of `rays` into the workers' gradient buffers. Rays are cut
-    /// into chunks of [`CHUNK`] that run on whichever thread is free; ray `i` keeps its index
-    /// as jitter id, so the contributions do not depend on the schedule.
-    fn accumulate(
-        &mut self,
-        rays: &[Ray],
-        loss: &LossConfig,
-        results: &mut [RayResult],
-    ) -> Result<StepStats, CpuError> {
-        himap_core::error::check_len("results", results.len(), rays.len())?;
-        let layout = self.data.layout;
-        let params = self.data.view();
-        let wt = self.data.transposed_mlps();
-        let out = ChunkedOut::new(results);
-        self.for_each_chunk(out.chunks(), |c, w| {
-            let rays = chunk_of(rays, c);
-            let mut results = out.chunk(c);
-            w.run(&wt, |cache, scratch, tape, sink| {
-                for (k, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
-                    *res = ray_train(
-                        &layout,
-                        &params,
-                        ray,
-                        (c * CHUNK + k) as u32,
-                        loss,
-                        cache,
-                        scratch,
-                        tape,
-                        sink,
-                    );
-                }
-            });
-        });
-        drop(out);
-        Ok(summarize(results, self.data.t))
     }
 
     /// Sums the workers' gradients into `grads` (zeroing the workers' buffers for the next
@@ -898,48 +865,28 @@ impl Backend for ParallelCpuBackend {
         loss: &LossConfig,
         results: &mut [RayResult],
     ) -> Result<StepStats, CpuError> {
-        let mut stats = self.accumulate(rays, loss, results)?;
+        let mut stats = self.run_job(&TrainRays { rays, loss }, results)?;
         self.finish_step(&mut stats);
         Ok(stats)
     }
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), CpuError> {
-        himap_core::error::check_len("results", results.len(), rays.len())?;
-        let layout = self.data.layout;
-        let params = self.data.view();
-        let wt = self.data.transposed_mlps();
-        let out = ChunkedOut::new(results);
-        self.for_each_chunk(out.chunks(), |c, w| {
-            let rays = chunk_of(rays, c);
-            let mut results = out.chunk(c);
-            w.run(&wt, |cache, scratch, tape, _| {
-                for (k, (ray, res)) in rays.iter().zip(results.iter_mut()).enumerate() {
-                    let id = (c * CHUNK + k) as u32;
-                    ray_forward_taped(&layout, &params, ray, id, 0, false, cache, scratch, tape);
-                    *res = RayResult {
-                        color: cache.out.color,
-                        depth: cache.out.depth,
-                        opacity: cache.out.opacity,
-                        loss: 0.0,
-                    };
-                }
-            });
-        });
+        self.run_job(&RenderRays { rays }, results)?;
         Ok(())
     }
 
     fn read_params(&mut self, group: Group, out: &mut [f32]) -> Result<(), CpuError> {
-        let src = &self.data.params[group as usize];
-        himap_core::error::check_len(group.name(), out.len(), src.len())?;
-        out.copy_from_slice(src);
-        Ok(())
+        Ok(copy_group(group, out, &self.data.params[group as usize])?)
     }
 
     fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), CpuError> {
-        let src = &self.grads[group as usize];
-        himap_core::error::check_len(group.name(), out.len(), src.len())?;
-        out.copy_from_slice(src);
-        Ok(())
+        Ok(copy_group(group, out, &self.grads[group as usize])?)
+    }
+
+    fn read_adam(&mut self, group: Group, m: &mut [f32], v: &mut [f32]) -> Result<(), CpuError> {
+        let g = group as usize;
+        copy_group(group, m, &self.data.m[g])?;
+        Ok(copy_group(group, v, &self.data.v[g])?)
     }
 
     fn write_params(
@@ -949,13 +896,15 @@ impl Backend for ParallelCpuBackend {
         reset_adam: bool,
     ) -> Result<(), CpuError> {
         let g = group as usize;
-        himap_core::error::check_len(group.name(), data.len(), self.data.params[g].len())?;
-        self.data.params[g].copy_from_slice(data);
-        if reset_adam {
-            self.data.m[g].fill(0.0);
-            self.data.v[g].fill(0.0);
-        }
-        Ok(())
+        let ModelData { params, m, v, .. } = &mut self.data;
+        Ok(write_group(
+            group,
+            data,
+            &mut params[g],
+            &mut m[g],
+            &mut v[g],
+            reset_adam,
+        )?)
     }
 
     fn image_store(&self) -> ImageStore {
@@ -963,18 +912,8 @@ impl Backend for ParallelCpuBackend {
     }
 
     fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), CpuError> {
-        let n = self.store.slot_len();
-        himap_core::error::check_len("frame pixels", rgba.len(), n)?;
-        if slot >= self.store.slots {
-            return Err(himap_core::Error::Capacity {
-                what: "image slot index",
-                needed: slot as u64 + 1,
-                capacity: self.store.slots as u64,
-            }
-            .into());
-        }
-        let o = slot as usize * n;
-        self.images[o..o + n].copy_from_slice(rgba);
+        let r = self.store.slot_range(slot, rgba.len())?;
+        self.images[r].copy_from_slice(rgba);
         Ok(())
     }
 
@@ -989,13 +928,7 @@ impl Backend for ParallelCpuBackend {
     }
 
     fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), CpuError> {
-        if !(lr.is_finite() && lr >= 0.0) {
-            return Err(
-                himap_core::Error::InvalidConfig("learning rate must be finite and >= 0").into(),
-            );
-        }
-        self.adam[group].lr = lr;
-        Ok(())
+        Ok(self.adam[group].set_lr(lr)?)
     }
 
     fn adam_lr(&self, group: Group) -> f32 {

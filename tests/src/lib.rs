@@ -1,1 +1,34 @@
-//! Shared helpers for himap's cross-crate tests.
+//! Shared pieces of himap's cross-crate tests: the backend conformance suite
+//! ([`conformance`]) and the Vulkan backend's constructor for tests ([`vulkan_or_skip`]).
+
+pub mod conformance;
+
+use himap::backend::ModelData;
+use himap_core::adam::AdamConfig;
+use himap_core::model::PerGroup;
+use himap_vulkan::{VulkanBackend, VulkanError};
+
+/// The Vulkan backend over `data`'s parameters, or `None` (with the reason printed) when this
+/// machine has no usable Vulkan device. With `HIMAP_REQUIRE_VULKAN=1` a missing device is a
+/// test failure. Errors that are not about device availability always fail.
+pub fn vulkan_or_skip(data: &ModelData, adam: PerGroup<AdamConfig>) -> Option<VulkanBackend> {
+    match VulkanBackend::new(data.layout, data.param_slices(), adam) {
+        Ok(b) => Some(b),
+        Err(
+            e @ (VulkanError::NoLoader(_)
+            | VulkanError::ApiTooOld { .. }
+            | VulkanError::Instance(_)
+            | VulkanError::NoDevice
+            | VulkanError::NoSuitableDevice { .. }
+            | VulkanError::MissingFeature { .. }
+            | VulkanError::DeviceNotFound { .. }),
+        ) => {
+            if std::env::var("HIMAP_REQUIRE_VULKAN").is_ok_and(|v| v == "1") {
+                panic!("HIMAP_REQUIRE_VULKAN=1 but no usable Vulkan device: {e}");
+            }
+            eprintln!("skipping: no usable Vulkan device: {e}");
+            None
+        }
+        Err(e) => panic!("creating the Vulkan backend failed: {e}"),
+    }
+}

@@ -278,24 +278,6 @@ impl VulkanBackend {
         self.t
     }
 
-    /// Copies a group's Adam moments out.
-    pub fn read_adam(
-        &mut self,
-        group: Group,
-        m: &mut [f32],
-        v: &mut [f32],
-    ) -> Result<(), VulkanError> {
-        let g = &self.groups[group as usize];
-        check_len(group.name(), m.len(), g.len)?;
-        check_len(group.name(), v.len(), g.len)?;
-        for p in &g.parts {
-            let r = p.start..p.start + p.len;
-            download_f32(&mut self.gpu, &mut self.staging, &p.m, &mut m[r.clone()])?;
-            download_f32(&mut self.gpu, &mut self.staging, &p.v, &mut v[r])?;
-        }
-        Ok(())
-    }
-
     /// Overwrites a group's Adam moments (a resumed run).
     pub fn write_adam(&mut self, group: Group, m: &[f32], v: &[f32]) -> Result<(), VulkanError> {
         let g = &mut self.groups[group as usize];
@@ -668,6 +650,18 @@ impl Backend for VulkanBackend {
         Ok(())
     }
 
+    fn read_adam(&mut self, group: Group, m: &mut [f32], v: &mut [f32]) -> Result<(), VulkanError> {
+        let g = &self.groups[group as usize];
+        check_len(group.name(), m.len(), g.len)?;
+        check_len(group.name(), v.len(), g.len)?;
+        for p in &g.parts {
+            let r = p.start..p.start + p.len;
+            download_f32(&mut self.gpu, &mut self.staging, &p.m, &mut m[r.clone()])?;
+            download_f32(&mut self.gpu, &mut self.staging, &p.v, &mut v[r])?;
+        }
+        Ok(())
+    }
+
     fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), VulkanError> {
         let g = &self.groups[group as usize];
         check_len(group.name(), out.len(), g.len)?;
@@ -718,21 +712,12 @@ impl Backend for VulkanBackend {
     }
 
     fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), VulkanError> {
-        let n = self.store.slot_len();
-        check_len("frame pixels", rgba.len(), n)?;
-        if slot >= self.store.slots {
-            return Err(himap_core::Error::Capacity {
-                what: "image slot index",
-                needed: slot as u64 + 1,
-                capacity: self.store.slots as u64,
-            }
-            .into());
-        }
+        let words = self.store.slot_range(slot, rgba.len())?;
         upload_at(
             &mut self.gpu,
             &mut self.staging,
             &mut self.images,
-            (slot as usize * n * 4) as u64,
+            (words.start * 4) as u64,
             &u32_bytes(rgba),
         )
     }
@@ -882,13 +867,7 @@ impl Backend for VulkanBackend {
     }
 
     fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), VulkanError> {
-        if !(lr.is_finite() && lr >= 0.0) {
-            return Err(
-                himap_core::Error::InvalidConfig("learning rate must be finite and >= 0").into(),
-            );
-        }
-        self.adam[group].lr = lr;
-        Ok(())
+        Ok(self.adam[group].set_lr(lr)?)
     }
 
     fn adam_lr(&self, group: Group) -> f32 {

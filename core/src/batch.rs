@@ -1,0 +1,190 @@
+//! The batch driver of the CPU backends: what one item (a ray or a pixel) of a training step,
+//! a render or a mapping iteration runs, and the loop that drives a run of items in order.
+//!
+//! The core's reference backend ([`crate::step::CpuBackend`]) drives a whole batch as one run
+//! with the [`Recompute`](crate::model::Recompute) tape; the host's parallel backend cuts the
+//! batch into chunks that run on a thread pool, each with its own tape and gradient sink. In
+//! both, item `i` of the batch keeps `i` as its id (the stratified jitter and the warping
+//! loss's pixel id), so the contributions do not depend on how the batch is cut: the
+//! fixed-point sums are the same integers and the results the same bits.
+//!
+//! The GPU runs the same per-item functions ([`ray_train`], [`ray_forward_taped`],
+//! [`pixel_train`]) as per-sample passes; its driver is the Vulkan backend's own.
+
+use crate::camera::PoseRead;
+use crate::mapping::{pixel_train, MappingLoss, PixelResult, PixelSample, WindowView};
+use crate::model::{
+    ray_forward_taped, ray_train, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
+    RayResult, SampleScratch, SampleTape,
+};
+use crate::step::{summarize, summarize_pixels, StepStats};
+use crate::warp::FrameImages;
+use crate::ParamRead;
+
+/// What one thread needs to run items: the model, its parameters, the ray cache and scratch,
+/// the tape that keeps the forward's activations and the sink that receives the gradient.
+pub struct ItemRunner<'r, P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink> {
+    pub layout: &'r ModelLayout,
+    pub params: &'r Params<'r, P>,
+    pub cache: &'r mut RayCache,
+    pub scratch: &'r mut SampleScratch,
+    pub tape: &'r mut T,
+    pub sink: &'r mut S,
+}
+
+/// One batch of work: its items and what each runs.
+pub trait BatchJob {
+    /// What one item produces.
+    type Output: Copy + Default;
+
+    /// Items in the batch.
+    fn len(&self) -> usize;
+
+    /// Whether the batch has no items.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Runs item `i` (its index in the whole batch, also its id).
+    fn run<P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
+        &self,
+        r: &mut ItemRunner<'_, P, T, S>,
+        i: usize,
+    ) -> Self::Output;
+
+    /// The step statistics of the whole batch's outputs (in item order).
+    fn summarize(results: &[Self::Output], t: u32) -> StepStats;
+}
+
+/// Runs items `first..first + out.len()` of `job` in order, item `first + k` into `out[k]`.
+/// Items past the end of the batch leave their output untouched.
+#[inline(always)]
+pub fn run_items<J: BatchJob, P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
+    job: &J,
+    r: &mut ItemRunner<'_, P, T, S>,
+    first: usize,
+    out: &mut [J::Output],
+) {
+    let n = job.len();
+    for (k, o) in out.iter_mut().enumerate() {
+        let i = first + k;
+        if i >= n {
+            break;
+        }
+        *o = job.run(r, i);
+    }
+}
+
+/// A training step over rays: [`ray_train`] for every ray.
+#[derive(Clone, Copy)]
+pub struct TrainRays<'a> {
+    pub rays: &'a [Ray],
+    pub loss: &'a LossConfig,
+}
+
+impl BatchJob for TrainRays<'_> {
+    type Output = RayResult;
+
+    fn len(&self) -> usize {
+        self.rays.len()
+    }
+
+    #[inline(always)]
+    fn run<P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
+        &self,
+        r: &mut ItemRunner<'_, P, T, S>,
+        i: usize,
+    ) -> RayResult {
+        ray_train(
+            r.layout,
+            r.params,
+            &self.rays[i],
+            i as u32,
+            self.loss,
+            r.cache,
+            r.scratch,
+            r.tape,
+            r.sink,
+        )
+    }
+
+    fn summarize(results: &[RayResult], t: u32) -> StepStats {
+        summarize(results, t)
+    }
+}
+
+/// A render of rays at the bins' centres (no jitter, no gradient; the sink receives nothing).
+#[derive(Clone, Copy)]
+pub struct RenderRays<'a> {
+    pub rays: &'a [Ray],
+}
+
+impl BatchJob for RenderRays<'_> {
+    type Output = RayResult;
+
+    fn len(&self) -> usize {
+        self.rays.len()
+    }
+
+    #[inline(always)]
+    fn run<P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
+        &self,
+        r: &mut ItemRunner<'_, P, T, S>,
+        i: usize,
+    ) -> RayResult {
+        let ray = &self.rays[i];
+        ray_forward_taped(
+            r.layout, r.params, ray, i as u32, 0, false, r.cache, r.scratch, r.tape,
+        );
+        let out = &r.cache.out;
+        RayResult {
+            color: out.color,
+            depth: out.depth,
+            opacity: out.opacity,
+            loss: 0.0,
+        }
+    }
+
+    fn summarize(results: &[RayResult], t: u32) -> StepStats {
+        summarize(results, t)
+    }
+}
+
+/// A mapping iteration: [`pixel_train`] for every sampled pixel of a window.
+pub struct MapPixels<'a, I: FrameImages + ?Sized, PS: PoseRead + ?Sized> {
+    pub pixels: &'a [PixelSample],
+    pub window: WindowView<'a, I, PS>,
+    pub loss: &'a MappingLoss,
+}
+
+impl<I: FrameImages + ?Sized, PS: PoseRead + ?Sized> BatchJob for MapPixels<'_, I, PS> {
+    type Output = PixelResult;
+
+    fn len(&self) -> usize {
+        self.pixels.len()
+    }
+
+    #[inline(always)]
+    fn run<P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
+        &self,
+        r: &mut ItemRunner<'_, P, T, S>,
+        i: usize,
+    ) -> PixelResult {
+        pixel_train(
+            r.layout,
+            r.params,
+            &self.window,
+            self.pixels[i],
+            i as u32,
+            self.loss,
+            r.cache,
+            r.scratch,
+            r.tape,
+            r.sink,
+        )
+    }
+
+    fn summarize(results: &[PixelResult], t: u32) -> StepStats {
+        summarize_pixels(results, t)
+    }
+}
