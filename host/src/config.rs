@@ -89,86 +89,68 @@ pub struct ModelSection {
     pub geo_init_iters: u32,
 }
 
-/// DIM-SLAM's warping loss settings.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct WarpSection {
-    /// Patch half size (5 = 11x11).
-    pub half: u32,
-    /// The centre must project this far (px) inside the other frame.
-    pub margin: f32,
-    /// Minimum number of frames that see the centre.
-    pub min_views: u32,
-    pub w_patch11: f32,
-    pub w_patch7: f32,
-    pub w_patch: f32,
-    pub w_center: f32,
-    pub center_beta: f32,
+/// `[mapper.warp]`: deserializes straight into the core's [`WarpConfig`] (its fields and
+/// their meaning are documented there; serde's remote derive checks this list against it).
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "WarpConfig", deny_unknown_fields)]
+struct WarpDef {
+    half: u32,
+    margin: f32,
+    min_views: u32,
+    w_patch11: f32,
+    w_patch7: f32,
+    w_patch: f32,
+    w_center: f32,
+    center_beta: f32,
 }
 
-/// The mapping schedule (see `himap_core::mapper`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct MapperSection {
-    /// Most recent frames in the window (15).
-    pub local_frames: u32,
-    /// Keyframes drawn into the window by view overlap (5).
-    pub window_keyframes: u32,
-    /// Further keyframes drawn uniformly from the rest of the cache, whatever their overlap
-    /// (0, the paper's), so that regions the camera has left keep receiving gradients.
-    pub global_keyframes: u32,
-    /// New frames between online updates (5).
-    pub update_every: u32,
-    /// Frames of the initialisation (15).
-    pub init_frames: u32,
-    /// Initialisation iterations (paper 1500).
-    pub init_iters: u32,
-    /// Initialisation iterations whose colour loss reaches the geometry (paper 250).
-    pub init_color_iters: u32,
-    /// Iterations per online update (paper 20).
-    pub iters: u32,
-    /// Pixels sampled per iteration over the whole window.
-    pub pixels: u32,
-    /// Sampled pixels stay this far (px) from the border (>= warp half + 1).
-    pub border: u32,
-    /// Online updates: fraction of the pixels given to the frames new since the last update
-    /// (0 = spread evenly over the window, the paper's).
-    pub new_frame_share: f32,
-    /// With it: fraction of the pixels given to the window's keyframes (0 = they share the
-    /// rest evenly with the older local frames).
-    pub keyframe_share: f32,
-    /// Colour weight during initialisation (0.1) and online (0.001); warp weight (1.0).
-    pub lambda_color_init: f32,
-    pub lambda_color: f32,
-    pub lambda_warp: f32,
-    pub warp: WarpSection,
-    /// DIM-SLAM's depth prior `smoothL1(D - depth_prior)` during the first
-    /// `depth_prior_iters` initialisation iterations (weight 0 = off; DIM-SLAM: 1.5 m, 150).
-    pub lambda_depth_prior: f32,
-    pub depth_prior: f32,
-    pub depth_prior_iters: u32,
-    /// After them: the prior with weight `lambda_depth_prior_online` on pixels rendered
-    /// closer than `depth_prior_near` (m) only, so that views collapsed onto the camera in
-    /// newly explored space get a plausible start (0 = off; `small`: 1.0, 0.5 m).
-    pub lambda_depth_prior_online: f32,
-    pub depth_prior_near: f32,
-    /// Non-finite steps are skipped and counted (`summary.json`: `rejected_steps`); after
-    /// `rejected_lr_after` in a row (0 = never) every learning rate is multiplied by
-    /// `rejected_lr_factor` (3 and 0.5).
-    pub rejected_lr_after: u32,
-    pub rejected_lr_factor: f32,
-    /// Early-termination threshold during the initialisation (0 = none, the default; online
-    /// updates use `model.min_transmittance`): the true surfaces behind the initial sphere
-    /// keep receiving gradients while the geometry is first found.
-    pub init_min_transmittance: f32,
-    /// Keyframe cache capacity.
-    pub max_keyframes: u32,
-    /// When the cache is full: "thin" (drop every other keyframe) or "drop-oldest".
-    pub keyframe_overflow: String,
-    /// Overlap test: rendered pixels, points per pixel, inside margin (px).
-    pub overlap_pixels: u32,
-    pub overlap_points: u32,
-    pub overlap_margin: f32,
+/// `mapper.keyframe_overflow`: "thin" or "drop-oldest".
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "KeyframeOverflow", rename_all = "kebab-case")]
+enum OverflowDef {
+    Thin,
+    DropOldest,
+}
+
+/// `[mapper]`: deserializes straight into the core's [`MapperConfig`] (its fields and their
+/// meaning are documented there; serde's remote derive checks this list against it). The
+/// seed is the configuration's top-level `seed`.
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "MapperConfig", deny_unknown_fields)]
+struct MapperDef {
+    local_frames: u32,
+    window_keyframes: u32,
+    global_keyframes: u32,
+    update_every: u32,
+    init_frames: u32,
+    init_iters: u32,
+    init_color_iters: u32,
+    iters: u32,
+    pixels: u32,
+    border: u32,
+    new_frame_share: f32,
+    keyframe_share: f32,
+    lambda_color_init: f32,
+    lambda_color: f32,
+    lambda_warp: f32,
+    #[serde(with = "WarpDef")]
+    warp: WarpConfig,
+    lambda_depth_prior: f32,
+    depth_prior: f32,
+    depth_prior_iters: u32,
+    lambda_depth_prior_online: f32,
+    depth_prior_near: f32,
+    rejected_lr_after: u32,
+    rejected_lr_factor: f32,
+    init_min_transmittance: f32,
+    max_keyframes: u32,
+    #[serde(with = "OverflowDef")]
+    keyframe_overflow: KeyframeOverflow,
+    overlap_pixels: u32,
+    overlap_points: u32,
+    overlap_margin: f32,
+    #[serde(skip)]
+    seed: u64,
 }
 
 /// Adam learning rates (betas 0.9, 0.999, eps 1e-8).
@@ -244,7 +226,10 @@ pub struct Config {
     /// Seed of the initialisation, pixel sampling and keyframe choice.
     pub seed: u64,
     pub model: ModelSection,
-    pub mapper: MapperSection,
+    /// The mapping schedule and its losses (`himap_core::mapper::MapperConfig`; its `seed`
+    /// is [`Config::seed`]).
+    #[serde(with = "MapperDef")]
+    pub mapper: MapperConfig,
     pub adam: AdamSection,
     pub scene: SceneSection,
     pub eval: EvalSection,
@@ -264,11 +249,6 @@ impl Default for ModelSection {
         Config::small().model
     }
 }
-impl Default for MapperSection {
-    fn default() -> Self {
-        Config::small().mapper
-    }
-}
 impl Default for AdamSection {
     fn default() -> Self {
         Config::small().adam
@@ -284,40 +264,6 @@ impl Default for EvalSection {
         Config::small().eval
     }
 }
-impl Default for WarpSection {
-    fn default() -> Self {
-        WarpSection::from_core(&WarpConfig::dim_slam())
-    }
-}
-
-impl WarpSection {
-    pub fn from_core(w: &WarpConfig) -> Self {
-        Self {
-            half: w.half,
-            margin: w.margin,
-            min_views: w.min_views,
-            w_patch11: w.w_patch11,
-            w_patch7: w.w_patch7,
-            w_patch: w.w_patch,
-            w_center: w.w_center,
-            center_beta: w.center_beta,
-        }
-    }
-
-    pub fn to_core(&self) -> WarpConfig {
-        WarpConfig {
-            half: self.half,
-            margin: self.margin,
-            min_views: self.min_views,
-            w_patch11: self.w_patch11,
-            w_patch7: self.w_patch7,
-            w_patch: self.w_patch,
-            w_center: self.w_center,
-            center_beta: self.center_beta,
-        }
-    }
-}
-
 fn grid_section(g: &GridConfig) -> GridSection {
     GridSection {
         channels: g.channels,
@@ -341,7 +287,6 @@ impl Config {
     /// The paper's values (48 samples per ray and 4096 pixels per iteration are ours: the
     /// paper does not give them).
     pub fn paper() -> Self {
-        let m = MapperConfig::paper(4096);
         Self {
             seed: 0,
             model: ModelSection {
@@ -363,36 +308,10 @@ impl Config {
                 min_transmittance: 0.0,
                 geo_init_iters: 200,
             },
-            mapper: MapperSection {
-                local_frames: m.local_frames,
-                window_keyframes: m.window_keyframes,
-                global_keyframes: m.global_keyframes,
-                update_every: m.update_every,
-                init_frames: m.init_frames,
-                init_iters: m.init_iters,
-                init_color_iters: m.init_color_iters,
-                iters: m.iters,
-                pixels: m.pixels,
-                border: m.border,
-                new_frame_share: m.new_frame_share,
-                keyframe_share: m.keyframe_share,
-                lambda_color_init: m.lambda_color_init,
-                lambda_color: m.lambda_color,
-                lambda_warp: m.lambda_warp,
-                warp: WarpSection::from_core(&m.warp),
-                lambda_depth_prior: m.lambda_depth_prior,
-                depth_prior: m.depth_prior,
-                depth_prior_iters: m.depth_prior_iters,
-                lambda_depth_prior_online: m.lambda_depth_prior_online,
-                depth_prior_near: m.depth_prior_near,
-                rejected_lr_after: m.rejected_lr_after,
-                rejected_lr_factor: m.rejected_lr_factor,
-                init_min_transmittance: m.init_min_transmittance,
-                max_keyframes: m.max_keyframes,
-                keyframe_overflow: "thin".into(),
-                overlap_pixels: m.overlap_pixels,
-                overlap_points: m.overlap_points,
-                overlap_margin: m.overlap_margin,
+            mapper: MapperConfig {
+                keyframe_overflow: KeyframeOverflow::Thin,
+                seed: 0,
+                ..MapperConfig::paper(4096)
             },
             adam: AdamSection {
                 grid_lr: 0.01,
@@ -530,7 +449,6 @@ impl Config {
     pub fn validate(&self) -> anyhow::Result<()> {
         self.grid_kind()?;
         self.render_mode()?;
-        self.keyframe_overflow()?;
         if !["none", "sphere"].contains(&self.model.geo_init.as_str()) {
             bail!("model.geo_init must be none or sphere");
         }
@@ -616,14 +534,6 @@ impl Config {
         parse_render_mode(&self.model.render_mode)
     }
 
-    pub fn keyframe_overflow(&self) -> anyhow::Result<KeyframeOverflow> {
-        Ok(match self.mapper.keyframe_overflow.as_str() {
-            "thin" => KeyframeOverflow::Thin,
-            "drop-oldest" => KeyframeOverflow::DropOldest,
-            o => bail!("mapper.keyframe_overflow '{o}': use thin or drop-oldest"),
-        })
-    }
-
     fn grid(&self, g: &GridSection) -> anyhow::Result<GridConfig> {
         let mut cell_sizes = [0.0; MAX_LEVELS];
         cell_sizes[..g.cell_sizes.len()].copy_from_slice(&g.cell_sizes);
@@ -658,38 +568,9 @@ impl Config {
 
     /// The core's mapper configuration.
     pub fn mapper_config(&self) -> anyhow::Result<MapperConfig> {
-        let m = &self.mapper;
         Ok(MapperConfig {
-            local_frames: m.local_frames,
-            window_keyframes: m.window_keyframes,
-            update_every: m.update_every,
-            global_keyframes: m.global_keyframes,
-            init_frames: m.init_frames,
-            init_iters: m.init_iters,
-            init_color_iters: m.init_color_iters,
-            iters: m.iters,
-            pixels: m.pixels,
-            border: m.border,
-            new_frame_share: m.new_frame_share,
-            keyframe_share: m.keyframe_share,
-            lambda_color_init: m.lambda_color_init,
-            lambda_color: m.lambda_color,
-            lambda_warp: m.lambda_warp,
-            warp: m.warp.to_core(),
-            lambda_depth_prior: m.lambda_depth_prior,
-            depth_prior: m.depth_prior,
-            depth_prior_iters: m.depth_prior_iters,
-            lambda_depth_prior_online: m.lambda_depth_prior_online,
-            depth_prior_near: m.depth_prior_near,
-            rejected_lr_after: m.rejected_lr_after,
-            rejected_lr_factor: m.rejected_lr_factor,
-            init_min_transmittance: m.init_min_transmittance,
-            max_keyframes: m.max_keyframes,
-            keyframe_overflow: self.keyframe_overflow()?,
-            overlap_pixels: m.overlap_pixels,
-            overlap_points: m.overlap_points,
-            overlap_margin: m.overlap_margin,
             seed: self.seed,
+            ..self.mapper
         })
     }
 
@@ -831,6 +712,27 @@ mod tests {
         assert_eq!(s.mapper.init_iters, Config::small().mapper.init_iters);
         let e = Config::from_toml_over("[model.geometry]\ncels = 1\n", &Config::paper());
         assert!(format!("{:#}", e.unwrap_err()).contains("cels"));
+    }
+
+    /// `[mapper]` is the core's `MapperConfig` itself: every key of it, the overflow policy by
+    /// name, the seed from the top level (a `mapper.seed` key is unknown).
+    #[test]
+    fn mapper_section_deserializes_into_the_core_config() {
+        let text = "seed = 7\n[mapper]\nkeyframe_overflow = \"drop-oldest\"\niters = 3\n\
+                    [mapper.warp]\nhalf = 3\n";
+        let m = Config::from_toml(text).unwrap().mapper_config().unwrap();
+        assert_eq!(m.keyframe_overflow, KeyframeOverflow::DropOldest);
+        assert_eq!((m.iters, m.warp.half, m.seed), (3, 3, 7));
+        let small = Config::small().mapper;
+        assert_eq!(
+            (m.local_frames, m.warp.margin),
+            (small.local_frames, small.warp.margin)
+        );
+        let e = Config::from_toml("[mapper]\nkeyframe_overflow = \"newest\"\n").unwrap_err();
+        let msg = format!("{e:#}");
+        assert!(msg.contains("thin") && msg.contains("drop-oldest"), "{msg}");
+        assert!(Config::from_toml("[mapper]\nseed = 3\n").is_err());
+        assert!(Config::from_toml("[mapper.warp]\nradius = 3\n").is_err());
     }
 
     #[test]
