@@ -416,13 +416,119 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     let small = if side < 7 { side } else { 7 };
     // Storage index of offset (dx, dy) is (dy + 5) * PATCH + dx + 5.
     let centre = PATCH_PIXELS / 2;
-    let pose_s = poses.pose(src);
 
-    // Patch points on the plane and their derivative with respect to depth (world frame),
-    // and the source patch.
     let mut xw = [[0.0f32; 3]; PATCH_PIXELS];
     let mut dxw = [[0.0f32; 3]; PATCH_PIXELS];
     let mut src_patch: Patch = [[0.0f32; 3]; PATCH_PIXELS];
+    let pose_s = poses.pose(src);
+    source_patch(
+        k,
+        &pose_s,
+        images,
+        src,
+        (u, v, half),
+        depth,
+        &mut xw,
+        &mut dxw,
+        &mut src_patch,
+    );
+
+    // Pass 1: validity of every pair from the centre point.
+    let mut centres = [[0.0f32; 2]; MAX_WINDOW];
+    let (mask, count) =
+        valid_views::<I, PS>(cfg, k, poses, n, src, xw[centre], (w, h), &mut centres);
+    if count < cfg.min_views || count == 0 {
+        return WarpResult {
+            loss: 0.0,
+            d_depth: 0.0,
+            valid_views: count,
+        };
+    }
+
+    let mut tgt: Patch = [[0.0f32; 3]; PATCH_PIXELS];
+    let mut dtgt: Patch = [[0.0f32; 3]; PATCH_PIXELS];
+    let mut g: Patch = [[0.0f32; 3]; PATCH_PIXELS];
+    let mut d_a: Patch = [[0.0f32; 3]; PATCH_PIXELS];
+    let mut d_b: Patch = [[0.0f32; 3]; PATCH_PIXELS];
+    let lo = (MAX_HALF as i32 - half) as usize;
+    let hi = lo + side;
+
+    let mut loss = 0.0f32;
+    let mut d_depth = 0.0f32;
+    if I::CPU && mask != 0 {
+        let first = mask.trailing_zeros() as usize;
+        prefetch_patch(images, first, centres[first][0], centres[first][1], half);
+    }
+    let mut j = 0;
+    while j < n {
+        if mask & (1u32 << j) == 0 {
+            j += 1;
+            continue;
+        }
+        if I::CPU {
+            // The next valid view's texels load while this one is computed.
+            let later = if j + 1 < 32 {
+                mask & (u32::MAX << (j + 1))
+            } else {
+                0
+            };
+            if later != 0 {
+                let next = later.trailing_zeros() as usize;
+                prefetch_patch(images, next, centres[next][0], centres[next][1], half);
+            }
+        }
+        let pose_j = poses.pose(j);
+
+        // Warped patch and its derivative with respect to depth.
+        if I::CPU && half == MAX_HALF as i32 {
+            warp_view_lanes(images, j, k, &pose_j, &xw, &dxw, &mut tgt, &mut dtgt);
+            g = [[0.0f32; 3]; PATCH_PIXELS];
+        } else {
+            warp_view(
+                images,
+                j,
+                k,
+                &pose_j,
+                (lo, hi),
+                &xw,
+                &dxw,
+                &mut tgt,
+                &mut dtgt,
+                &mut g,
+            );
+        }
+
+        let sides = (side, small);
+        let pair = pair_loss(cfg, sides, &src_patch, &tgt, &mut g, &mut d_a, &mut d_b);
+        loss += pair;
+        d_depth += chain_to_depth((lo, hi), &g, &dtgt);
+        j += 1;
+    }
+
+    WarpResult {
+        loss,
+        d_depth,
+        valid_views: count,
+    }
+}
+
+/// The patch around source pixel (`u`, `v`) of half size `half` on the fronto-parallel plane
+/// at `depth`: its points in the world (`xw`), their derivative with respect to depth (`dxw`)
+/// and the source frame's texels (`src_patch`, the border clamped).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn source_patch<I: FrameImages + ?Sized>(
+    k: &Intrinsics,
+    pose_s: &Pose,
+    images: &I,
+    src: usize,
+    (u, v, half): (u32, u32, i32),
+    depth: f32,
+    xw: &mut [[f32; 3]; PATCH_PIXELS],
+    dxw: &mut [[f32; 3]; PATCH_PIXELS],
+    src_patch: &mut Patch,
+) {
+    let (w, h) = images.size();
     let wmax = (w - 1) as i32;
     let hmax = (h - 1) as i32;
     let mut dy = -half;
@@ -454,16 +560,28 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         }
         dy += 1;
     }
+}
 
-    // Pass 1: validity of every pair from the centre point.
+/// Which window frames (other than `src`) see the patch centre `x_centre` validly: a bit mask
+/// and its count. On the CPU the projected centres go to `centres` (for the cache hints).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn valid_views<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
+    cfg: &WarpConfig,
+    k: &Intrinsics,
+    poses: &PS,
+    n: usize,
+    src: usize,
+    x_centre: [f32; 3],
+    (w, h): (u32, u32),
+    centres: &mut [[f32; 2]; MAX_WINDOW],
+) -> (u32, u32) {
     let mut mask = 0u32;
     let mut count = 0u32;
-    // Projected centres, kept for the cache hints only.
-    let mut centres = [[0.0f32; 2]; MAX_WINDOW];
     let mut j = 0;
     while j < n {
         if j != src {
-            let x = poses.pose(j).inverse_transform(xw[centre]);
+            let x = poses.pose(j).inverse_transform(x_centre);
             let (pu, pv, z) = k.project(x);
             if centre_valid(pu, pv, z, w, h, cfg.margin) {
                 mask |= 1u32 << j;
@@ -475,150 +593,126 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         }
         j += 1;
     }
-    if count < cfg.min_views || count == 0 {
-        return WarpResult {
-            loss: 0.0,
-            d_depth: 0.0,
-            valid_views: count,
-        };
-    }
+    (mask, count)
+}
 
-    let c11 = cfg.w_patch * cfg.w_patch11;
-    let c7 = cfg.w_patch * cfg.w_patch7;
-    let mut tgt: Patch = [[0.0f32; 3]; PATCH_PIXELS];
-    let mut dtgt: Patch = [[0.0f32; 3]; PATCH_PIXELS];
-    let mut g: Patch = [[0.0f32; 3]; PATCH_PIXELS];
-    let mut d_a: Patch = [[0.0f32; 3]; PATCH_PIXELS];
-    let mut d_b: Patch = [[0.0f32; 3]; PATCH_PIXELS];
-    let lo = (MAX_HALF as i32 - half) as usize;
-    let hi = lo + side;
-
-    let mut loss = 0.0f32;
-    let mut d_depth = 0.0f32;
-    if I::CPU && mask != 0 {
-        let first = mask.trailing_zeros() as usize;
-        prefetch_patch(images, first, centres[first][0], centres[first][1], half);
-    }
-    j = 0;
-    while j < n {
-        if mask & (1u32 << j) == 0 {
-            j += 1;
-            continue;
-        }
-        if I::CPU {
-            // The next valid view's texels load while this one is computed.
-            let later = if j + 1 < 32 {
-                mask & (u32::MAX << (j + 1))
-            } else {
-                0
-            };
-            if later != 0 {
-                let next = later.trailing_zeros() as usize;
-                prefetch_patch(images, next, centres[next][0], centres[next][1], half);
-            }
-        }
-        let pose_j = poses.pose(j);
-
-        // Warped patch and its derivative with respect to depth.
-        if I::CPU && half == MAX_HALF as i32 {
-            warp_view_lanes(images, j, k, &pose_j, &xw, &dxw, &mut tgt, &mut dtgt);
-            g = [[0.0f32; 3]; PATCH_PIXELS];
-        } else {
-            let mut r = lo;
-            while r < hi {
-                let mut col = lo;
-                while col < hi {
-                    let p = r * PATCH + col;
-                    let x = pose_j.inverse_transform(xw[p]);
-                    let xd = inverse_rotate(&pose_j, dxw[p]);
-                    let (pu, pv, _) = k.project(x);
-                    let (val, du, dv) = sample_bilinear(images, j, w, h, pu, pv);
-                    tgt[p] = val;
-                    let (dpu, dpv) = projection_derivative(k, x, xd);
-                    let mut c = 0;
-                    while c < 3 {
-                        dtgt[p][c] = du[c] * dpu + dv[c] * dpv;
-                        g[p][c] = 0.0;
-                        c += 1;
-                    }
-                    col += 1;
-                }
-                r += 1;
-            }
-        }
-
-        // Pair loss and its cotangent with respect to the warped patch.
-        let mut patch_term = 0.0f32;
-        if c11 != 0.0 {
-            let s = ssim_patch(side, &src_patch, &tgt, &mut d_a, &mut d_b);
-            let s11 = 0.5 * ((1.0 - s[0]) + (1.0 - s[1]) + (1.0 - s[2]));
-            patch_term += cfg.w_patch11 * s11;
-            let k11 = -0.5 * c11;
-            let mut p = 0;
-            while p < PATCH_PIXELS {
-                let mut c = 0;
-                while c < 3 {
-                    g[p][c] += k11 * d_b[p][c];
-                    c += 1;
-                }
-                p += 1;
-            }
-        }
-        if c7 != 0.0 {
-            let s = ssim_patch(small, &src_patch, &tgt, &mut d_a, &mut d_b);
-            let s7 = 0.5 * ((1.0 - s[0]) + (1.0 - s[1]) + (1.0 - s[2]));
-            patch_term += cfg.w_patch7 * s7;
-            let k7 = -0.5 * c7;
-            let mut p = 0;
-            while p < PATCH_PIXELS {
-                let mut c = 0;
-                while c < 3 {
-                    g[p][c] += k7 * d_b[p][c];
-                    c += 1;
-                }
-                p += 1;
-            }
-        }
-        let mut pair = cfg.w_patch * patch_term;
-        if cfg.w_center != 0.0 {
-            let mut center = 0.0f32;
+/// The source patch warped into frame `j` (rows and columns `lo..hi` of the storage) and its
+/// derivative with respect to depth; zeroes the patch cotangent `g` there.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn warp_view<I: FrameImages + ?Sized>(
+    images: &I,
+    j: usize,
+    k: &Intrinsics,
+    pose_j: &Pose,
+    (lo, hi): (usize, usize),
+    xw: &[[f32; 3]; PATCH_PIXELS],
+    dxw: &[[f32; 3]; PATCH_PIXELS],
+    tgt: &mut Patch,
+    dtgt: &mut Patch,
+    g: &mut Patch,
+) {
+    let (w, h) = images.size();
+    let mut r = lo;
+    while r < hi {
+        let mut col = lo;
+        while col < hi {
+            let p = r * PATCH + col;
+            let x = pose_j.inverse_transform(xw[p]);
+            let xd = inverse_rotate(pose_j, dxw[p]);
+            let (pu, pv, _) = k.project(x);
+            let (val, du, dv) = sample_bilinear(images, j, w, h, pu, pv);
+            tgt[p] = val;
+            let (dpu, dpv) = projection_derivative(k, x, xd);
             let mut c = 0;
             while c < 3 {
-                let (l, dl) = smooth_l1(src_patch[centre][c] - tgt[centre][c], cfg.center_beta);
-                center += l;
-                g[centre][c] += -cfg.w_center * dl;
+                dtgt[p][c] = du[c] * dpu + dv[c] * dpv;
+                g[p][c] = 0.0;
                 c += 1;
             }
-            pair += cfg.w_center * center;
+            col += 1;
         }
+        r += 1;
+    }
+}
 
-        // Chain to depth: patch pixels row-major, channels innermost.
-        let mut d_pair = 0.0f32;
-        let mut r = lo;
-        while r < hi {
-            let mut col = lo;
-            while col < hi {
-                let p = r * PATCH + col;
-                let mut c = 0;
-                while c < 3 {
-                    d_pair += g[p][c] * dtgt[p][c];
-                    c += 1;
-                }
-                col += 1;
+/// One pair's loss (the 11x11 and 7x7 SSIM terms over patches of `sides` = (side, small), and
+/// the centre term), adding its cotangent with respect to the warped patch into `g`.
+#[inline(always)]
+fn pair_loss(
+    cfg: &WarpConfig,
+    (side, small): (usize, usize),
+    src_patch: &Patch,
+    tgt: &Patch,
+    g: &mut Patch,
+    d_a: &mut Patch,
+    d_b: &mut Patch,
+) -> f32 {
+    let c11 = cfg.w_patch * cfg.w_patch11;
+    let c7 = cfg.w_patch * cfg.w_patch7;
+    let mut patch_term = 0.0f32;
+    if c11 != 0.0 {
+        let s = ssim_patch(side, src_patch, tgt, d_a, d_b);
+        let s11 = 0.5 * ((1.0 - s[0]) + (1.0 - s[1]) + (1.0 - s[2]));
+        patch_term += cfg.w_patch11 * s11;
+        add_scaled_patch(g, -0.5 * c11, d_b);
+    }
+    if c7 != 0.0 {
+        let s = ssim_patch(small, src_patch, tgt, d_a, d_b);
+        let s7 = 0.5 * ((1.0 - s[0]) + (1.0 - s[1]) + (1.0 - s[2]));
+        patch_term += cfg.w_patch7 * s7;
+        add_scaled_patch(g, -0.5 * c7, d_b);
+    }
+    let mut pair = cfg.w_patch * patch_term;
+    if cfg.w_center != 0.0 {
+        let centre = PATCH_PIXELS / 2;
+        let mut center = 0.0f32;
+        let mut c = 0;
+        while c < 3 {
+            let (l, dl) = smooth_l1(src_patch[centre][c] - tgt[centre][c], cfg.center_beta);
+            center += l;
+            g[centre][c] += -cfg.w_center * dl;
+            c += 1;
+        }
+        pair += cfg.w_center * center;
+    }
+    pair
+}
+
+/// `g += k * d` over the whole patch storage.
+#[inline(always)]
+fn add_scaled_patch(g: &mut Patch, k: f32, d: &Patch) {
+    let mut p = 0;
+    while p < PATCH_PIXELS {
+        let mut c = 0;
+        while c < 3 {
+            g[p][c] += k * d[p][c];
+            c += 1;
+        }
+        p += 1;
+    }
+}
+
+/// The pair's derivative with respect to depth: the cotangent `g` times the warped patch's
+/// derivative `dtgt`, pixels row-major over rows and columns `lo..hi`, channels innermost.
+#[inline(always)]
+fn chain_to_depth((lo, hi): (usize, usize), g: &Patch, dtgt: &Patch) -> f32 {
+    let mut d_pair = 0.0f32;
+    let mut r = lo;
+    while r < hi {
+        let mut col = lo;
+        while col < hi {
+            let p = r * PATCH + col;
+            let mut c = 0;
+            while c < 3 {
+                d_pair += g[p][c] * dtgt[p][c];
+                c += 1;
             }
-            r += 1;
+            col += 1;
         }
-
-        loss += pair;
-        d_depth += d_pair;
-        j += 1;
+        r += 1;
     }
-
-    WarpResult {
-        loss,
-        d_depth,
-        valid_views: count,
-    }
+    d_pair
 }
 
 #[cfg(test)]

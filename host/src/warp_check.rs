@@ -231,33 +231,9 @@ pub fn run(opts: &WarpCheckOptions) -> anyhow::Result<(Vec<WarpStats>, WarpStats
         "{} frames selected, a window of {window} frames {step} apart needs {span}",
         ds.len()
     );
-    let mapper = config.mapper_config()?;
-    let wcfg: WarpConfig = mapper.warp;
-    let border = mapper.border.max(wcfg.half + 1);
-    let k = ds.intrinsics();
-    anyhow::ensure!(
-        opts.focal_scale.is_finite() && opts.focal_scale > 0.0,
-        "focal scale {} must be positive",
-        opts.focal_scale
-    );
-    let k = Intrinsics {
-        fx: k.fx * opts.focal_scale,
-        fy: k.fy * opts.focal_scale,
-        ..k
-    };
-    let (w, h) = (k.width, k.height);
-    anyhow::ensure!(
-        w > 2 * border && h > 2 * border,
-        "images of {w}x{h} are too small for a border of {border} px"
-    );
+    let check = Check::new(opts, &config, ds.intrinsics(), window)?;
     let anchors = opts.anchors.max(1);
     let last_first = ds.len() - span;
-    let scales = sweep();
-    let centre_cfg = WarpConfig {
-        w_patch: 0.0,
-        w_center: 1.0,
-        ..wcfg
-    };
     let mut rows = Vec::new();
     let mut total = WarpStats {
         first: usize::MAX,
@@ -270,31 +246,122 @@ pub fn run(opts: &WarpCheckOptions) -> anyhow::Result<(Vec<WarpStats>, WarpStats
             last_first * a / (anchors - 1)
         };
         let ids: Vec<usize> = (0..window).map(|i| first + i * step).collect();
-        let mut poses: Vec<Pose> = Vec::with_capacity(window);
-        let mut data: Vec<f32> = Vec::with_capacity(window * (w * h * 3) as usize);
-        let mut depths = Vec::with_capacity(window);
-        for &i in &ids {
-            let f = ds.frame(i).with_context(|| format!("frame {i}"))?;
-            poses.push(f.pose);
-            let rgb = f.rgb.blurred(opts.blur);
-            // The mapper reads RGBA8 slot images: quantise the same way.
-            for px in rgb.data.as_chunks::<3>().0 {
-                let q = himap_core::mapping::unpack_rgba8(himap_core::mapping::pack_rgba8(*px));
-                data.extend_from_slice(&q);
-            }
-            depths.push(f.depth.context("frame without depth")?);
-        }
+        let (poses, data, depths) = load_window(ds.as_ref(), &ids, opts.blur)?;
         let images = PackedImages {
-            width: w,
-            height: h,
+            width: check.k.width,
+            height: check.k.height,
             data: &data,
         };
         let mut rng = SplitMix::new(opts.seed ^ (first as u64).wrapping_mul(0x9e37_79b9));
-        let mut picks = Vec::with_capacity(opts.pixels);
+        let picks = check.pick_pixels(&depths, opts.pixels, &mut rng);
+        let rendered = match backend.as_mut() {
+            Some(b) => Some(check.render_picks(b, &poses, &picks)?),
+            None => None,
+        };
+        let mut st = WarpStats {
+            first: ids[0],
+            ..Default::default()
+        };
+        for (i, &pick) in picks.iter().enumerate() {
+            let depth = rendered.as_ref().map(|r| r[i].depth);
+            check.score(&mut st, &poses, &images, pick, depth);
+        }
+        total.add(&st);
+        rows.push(st);
+    }
+    Ok((rows, total))
+}
+
+/// A sampled source pixel: window frame, column, row and its ground-truth depth.
+type Pick = (usize, u32, u32, f32);
+
+/// Poses, RGBA8-quantised colours (as the mapper's slot images hold them, after `blur`) and
+/// ground-truth depths of the frames `ids`.
+fn load_window(
+    ds: &dyn dataset::Dataset,
+    ids: &[usize],
+    blur: u32,
+) -> anyhow::Result<(Vec<Pose>, Vec<f32>, Vec<dataset::DepthImage>)> {
+    let mut poses: Vec<Pose> = Vec::with_capacity(ids.len());
+    let mut data: Vec<f32> = Vec::new();
+    let mut depths = Vec::with_capacity(ids.len());
+    for &i in ids {
+        let f = ds.frame(i).with_context(|| format!("frame {i}"))?;
+        poses.push(f.pose);
+        let rgb = f.rgb.blurred(blur);
+        for px in rgb.data.as_chunks::<3>().0 {
+            let q = himap_core::mapping::unpack_rgba8(himap_core::mapping::pack_rgba8(*px));
+            data.extend_from_slice(&q);
+        }
+        depths.push(f.depth.context("frame without depth")?);
+    }
+    Ok((poses, data, depths))
+}
+
+/// What every window of a check shares: the camera, the loss settings and the sweep.
+struct Check {
+    k: Intrinsics,
+    window: usize,
+    wcfg: WarpConfig,
+    /// The centre term alone (its residual at the truth).
+    centre_cfg: WarpConfig,
+    border: u32,
+    scales: Vec<f32>,
+}
+
+impl Check {
+    fn new(
+        opts: &WarpCheckOptions,
+        config: &Config,
+        k: Intrinsics,
+        window: usize,
+    ) -> anyhow::Result<Self> {
+        let mapper = config.mapper_config()?;
+        let wcfg: WarpConfig = mapper.warp;
+        let border = mapper.border.max(wcfg.half + 1);
+        anyhow::ensure!(
+            opts.focal_scale.is_finite() && opts.focal_scale > 0.0,
+            "focal scale {} must be positive",
+            opts.focal_scale
+        );
+        let k = Intrinsics {
+            fx: k.fx * opts.focal_scale,
+            fy: k.fy * opts.focal_scale,
+            ..k
+        };
+        let (w, h) = (k.width, k.height);
+        anyhow::ensure!(
+            w > 2 * border && h > 2 * border,
+            "images of {w}x{h} are too small for a border of {border} px"
+        );
+        let centre_cfg = WarpConfig {
+            w_patch: 0.0,
+            w_center: 1.0,
+            ..wcfg
+        };
+        Ok(Self {
+            k,
+            window,
+            wcfg,
+            centre_cfg,
+            border,
+            scales: sweep(),
+        })
+    }
+
+    /// Up to `n` pixels away from the border that have a ground-truth depth.
+    fn pick_pixels(
+        &self,
+        depths: &[dataset::DepthImage],
+        n: usize,
+        rng: &mut SplitMix,
+    ) -> Vec<Pick> {
+        let (w, h, border) = (self.k.width, self.k.height, self.border);
+        let mut picks = Vec::with_capacity(n);
         let mut tries = 0;
-        while picks.len() < opts.pixels && tries < opts.pixels * 20 {
+        while picks.len() < n && tries < n * 20 {
             tries += 1;
-            let src = rng.below(window as u32) as usize;
+            let src = rng.below(self.window as u32) as usize;
             let u = border + rng.below(w - 2 * border);
             let v = border + rng.below(h - 2 * border);
             let d = depths[src].get(u, v);
@@ -302,89 +369,94 @@ pub fn run(opts: &WarpCheckOptions) -> anyhow::Result<(Vec<WarpStats>, WarpStats
                 picks.push((src, u, v, d));
             }
         }
-        let rendered: Option<Vec<RayResult>> = match backend.as_mut() {
-            Some(b) => {
-                let rays: Vec<Ray> = picks
-                    .iter()
-                    .map(|&(src, u, v, _)| {
-                        let (origin, dir) = poses[src].ray(&k, u as f32, v as f32);
-                        Ray {
-                            origin,
-                            dir,
-                            target: [0.0; 3],
-                            target_depth: 0.0,
-                        }
-                    })
-                    .collect();
-                let mut out = vec![RayResult::default(); rays.len()];
-                b.render(&rays, &mut out)?;
-                Some(out)
-            }
-            None => None,
-        };
-        let mut st = WarpStats {
-            first: ids[0],
-            ..Default::default()
-        };
-        let loss_at = |src: usize, u: u32, v: u32, d: f32| {
-            warp_pixel(&wcfg, &k, &poses[..], window, src, u, v, d, &images)
-        };
-        for (i, &(src, u, v, gt)) in picks.iter().enumerate() {
-            st.sampled += 1;
-            let at_gt = loss_at(src, u, v, gt);
-            if at_gt.valid_views < wcfg.min_views {
-                continue;
-            }
-            st.valid += 1;
-            let mut best = (f32::INFINITY, 1.0f32);
-            for &s in &scales {
-                let r = loss_at(src, u, v, gt * s);
-                // A depth where too few views are valid scores 0: not a minimum to take.
-                if r.valid_views >= wcfg.min_views && r.loss < best.0 {
-                    best = (r.loss, s);
+        picks
+    }
+
+    /// The map's rendering of the picked pixels' rays.
+    fn render_picks(
+        &self,
+        b: &mut ParallelCpuBackend,
+        poses: &[Pose],
+        picks: &[Pick],
+    ) -> anyhow::Result<Vec<RayResult>> {
+        let rays: Vec<Ray> = picks
+            .iter()
+            .map(|&(src, u, v, _)| {
+                let (origin, dir) = poses[src].ray(&self.k, u as f32, v as f32);
+                Ray {
+                    origin,
+                    dir,
+                    target: [0.0; 3],
+                    target_depth: 0.0,
                 }
-            }
-            let rel = (best.1 - 1.0).abs();
-            st.rel_err.push(rel);
-            st.within5 += (rel <= 0.05) as usize;
-            st.within10 += (rel <= 0.10) as usize;
-            // The basin uses the gradients at 0.8 gt and 1.25 gt, two of the scales below.
-            let (mut lo, mut hi) = (0.0f32, 0.0f32);
-            for (j, &s) in BASIN_SCALES.iter().enumerate() {
-                let r = loss_at(src, u, v, gt * s);
-                if s == 0.8 {
-                    lo = r.d_depth;
-                } else if s == 1.25 {
-                    hi = r.d_depth;
-                }
-                let towards = if s < 1.0 {
-                    r.d_depth < 0.0
-                } else {
-                    r.d_depth > 0.0
-                };
-                st.towards[j] += (r.valid_views >= wcfg.min_views && towards) as usize;
-            }
-            st.basin += (lo < 0.0 && hi > 0.0) as usize;
-            let c = warp_pixel(&centre_cfg, &k, &poses[..], window, src, u, v, gt, &images);
-            st.centre_residual += c.loss as f64 / c.valid_views.max(1) as f64;
-            if let Some(r) = &rendered {
-                let d = r[i].depth;
-                if d.is_finite() && d > 0.0 {
-                    let at_r = loss_at(src, u, v, d);
-                    if at_r.valid_views >= wcfg.min_views {
-                        st.both += 1;
-                        st.gt_lower += (at_gt.loss < at_r.loss) as usize;
-                        st.loss_gt += at_gt.loss as f64 / at_gt.valid_views as f64;
-                        st.loss_rendered += at_r.loss as f64 / at_r.valid_views as f64;
-                        st.depth_err += (d - gt).abs() as f64;
-                    }
-                }
+            })
+            .collect();
+        let mut out = vec![RayResult::default(); rays.len()];
+        b.render(&rays, &mut out)?;
+        Ok(out)
+    }
+
+    /// Adds one pixel to the window's statistics: the sweep's minimum, the basin, the centre
+    /// residual at the truth and, with a map's rendered depth, the comparison with it.
+    fn score(
+        &self,
+        st: &mut WarpStats,
+        poses: &[Pose],
+        images: &PackedImages<'_>,
+        (src, u, v, gt): Pick,
+        rendered: Option<f32>,
+    ) {
+        let (wcfg, k, n) = (&self.wcfg, &self.k, self.window);
+        let loss_at = |d: f32| warp_pixel(wcfg, k, poses, n, src, u, v, d, images);
+        st.sampled += 1;
+        let at_gt = loss_at(gt);
+        if at_gt.valid_views < wcfg.min_views {
+            return;
+        }
+        st.valid += 1;
+        let mut best = (f32::INFINITY, 1.0f32);
+        for &s in &self.scales {
+            let r = loss_at(gt * s);
+            // A depth where too few views are valid scores 0: not a minimum to take.
+            if r.valid_views >= wcfg.min_views && r.loss < best.0 {
+                best = (r.loss, s);
             }
         }
-        total.add(&st);
-        rows.push(st);
+        let rel = (best.1 - 1.0).abs();
+        st.rel_err.push(rel);
+        st.within5 += (rel <= 0.05) as usize;
+        st.within10 += (rel <= 0.10) as usize;
+        // The basin uses the gradients at 0.8 gt and 1.25 gt, two of the scales below.
+        let (mut lo, mut hi) = (0.0f32, 0.0f32);
+        for (j, &s) in BASIN_SCALES.iter().enumerate() {
+            let r = loss_at(gt * s);
+            if s == 0.8 {
+                lo = r.d_depth;
+            } else if s == 1.25 {
+                hi = r.d_depth;
+            }
+            let towards = if s < 1.0 {
+                r.d_depth < 0.0
+            } else {
+                r.d_depth > 0.0
+            };
+            st.towards[j] += (r.valid_views >= wcfg.min_views && towards) as usize;
+        }
+        st.basin += (lo < 0.0 && hi > 0.0) as usize;
+        let c = warp_pixel(&self.centre_cfg, k, poses, n, src, u, v, gt, images);
+        st.centre_residual += c.loss as f64 / c.valid_views.max(1) as f64;
+        let Some(d) = rendered.filter(|d| d.is_finite() && *d > 0.0) else {
+            return;
+        };
+        let at_r = loss_at(d);
+        if at_r.valid_views >= wcfg.min_views {
+            st.both += 1;
+            st.gt_lower += (at_gt.loss < at_r.loss) as usize;
+            st.loss_gt += at_gt.loss as f64 / at_gt.valid_views as f64;
+            st.loss_rendered += at_r.loss as f64 / at_r.valid_views as f64;
+            st.depth_err += (d - gt).abs() as f64;
+        }
     }
-    Ok((rows, total))
 }
 
 #[cfg(test)]

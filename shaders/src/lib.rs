@@ -32,8 +32,8 @@ use himap_core::adam;
 use himap_core::camera::{Intrinsics, Pose};
 pub use himap_core::gpu_abi::WORKGROUP_SIZE;
 use himap_core::gpu_abi::{
-    words, AdamPush, KernelPush, LossCheckPush, RangePush, SamplePush, TrainPush, PARAM_BINDINGS,
-    PIXEL_RESULT_FLOATS, RAY_FLOATS, RESULT_FLOATS, SAMPLE_FLOATS,
+    pixel_result_record, ray_result_record, words, AdamPush, KernelPush, LossCheckPush, RangePush,
+    SamplePush, TrainPush, PARAM_BINDINGS, RAY_FLOATS, SAMPLE_FLOATS,
 };
 use himap_core::grid::{self, MAX_GRID_FEATURES};
 use himap_core::mapping::{self, PixelResult, PixelSample, WindowImages, WindowView};
@@ -393,16 +393,16 @@ fn read_ray(rays: &[f32], i: usize) -> Ray {
     }
 }
 
+/// Writes record `i` of a results buffer (dropped past its end).
 #[inline(always)]
-fn write_result(out: &mut [f32], i: usize, color: [f32; 3], depth: f32, opacity: f32, loss: f32) {
-    let b = i * RESULT_FLOATS;
-    if b + RESULT_FLOATS <= out.len() {
-        out[b] = color[0];
-        out[b + 1] = color[1];
-        out[b + 2] = color[2];
-        out[b + 3] = depth;
-        out[b + 4] = opacity;
-        out[b + 5] = loss;
+fn write_record<const N: usize>(out: &mut [f32], i: usize, record: &[f32; N]) {
+    let b = i * N;
+    if b + N <= out.len() {
+        let mut k = 0;
+        while k < N {
+            out[b + k] = record[k];
+            k += 1;
+        }
     }
 }
 
@@ -544,7 +544,7 @@ fn store_cotangents(
 /// gradient.
 ///
 /// - binding 0 `model`; binding 1 `beta` (one float); binding 2 the beta gradient (`i64`);
-/// - binding 3 `rays`; binding 4 `samples`; binding 5 `results` ([`RESULT_FLOATS`] per ray).
+/// - binding 3 `rays`; binding 4 `samples`; binding 5 `results` ([`himap_core::gpu_abi::RESULT_FLOATS`] per ray).
 #[spirv(compute(threads(64)))]
 #[allow(clippy::too_many_arguments)]
 pub fn ray_train_cs(
@@ -596,7 +596,7 @@ pub fn ray_train_cs(
         }
     }
     store_cotangents(&layout, r, cache.n, &d_sdf, &d_rgb, samples);
-    write_result(results, r, res.color, res.depth, res.opacity, res.loss);
+    write_record(results, r, &ray_result_record(&res));
 }
 
 /// Pass 3 of a training or mapping step: one sample per invocation,
@@ -686,7 +686,7 @@ pub fn sample_backward_cs(
 /// centres (as the CPU backends' `render`, loss 0).
 ///
 /// - binding 0 `model`; binding 1 `beta`; binding 2 `rays`; binding 3 `samples`;
-/// - binding 4 `results` ([`RESULT_FLOATS`] per ray).
+/// - binding 4 `results` ([`himap_core::gpu_abi::RESULT_FLOATS`] per ray).
 #[spirv(compute(threads(64)))]
 pub fn ray_render_cs(
     #[spirv(global_invocation_id)] id: UVec3,
@@ -705,14 +705,13 @@ pub fn ray_render_cs(
     let ray = read_ray(rays, r);
     let mut cache = RayCache::new();
     load_ray(&layout, first_or_zero(p_beta), &ray, r, samples, &mut cache);
-    write_result(
-        results,
-        r,
-        cache.out.color,
-        cache.out.depth,
-        cache.out.opacity,
-        0.0,
-    );
+    let res = model::RayResult {
+        color: cache.out.color,
+        depth: cache.out.depth,
+        opacity: cache.out.opacity,
+        loss: 0.0,
+    };
+    write_record(results, r, &ray_result_record(&res));
 }
 
 /// Pass 0 of a mapping step: the camera ray of every sampled pixel (`mapping::pixel_ray`),
@@ -793,7 +792,7 @@ fn read_pixel(pixels: &[u32], i: usize) -> PixelSample {
 /// - binding 0 `model`; binding 1 `beta`; binding 2 the beta gradient;
 /// - binding 3 `window` words; binding 4 `pixels`; binding 5 `images`;
 /// - binding 6 `rays` (from [`pixel_rays_cs`]); binding 7 `samples`;
-/// - binding 8 `results` ([`PIXEL_RESULT_FLOATS`] per pixel).
+/// - binding 8 `results` ([`himap_core::gpu_abi::PIXEL_RESULT_FLOATS`] per pixel).
 #[spirv(compute(threads(64)))]
 #[allow(clippy::too_many_arguments)]
 pub fn pixel_train_cs(
@@ -866,17 +865,7 @@ pub fn pixel_train_cs(
         }
     }
     store_cotangents(&layout, i, live, &d_sdf, &d_rgb, pixel_samples);
-    let b = i * PIXEL_RESULT_FLOATS;
-    if b + PIXEL_RESULT_FLOATS <= pixel_results.len() {
-        pixel_results[b] = res.color[0];
-        pixel_results[b + 1] = res.color[1];
-        pixel_results[b + 2] = res.color[2];
-        pixel_results[b + 3] = res.depth;
-        pixel_results[b + 4] = res.opacity;
-        pixel_results[b + 5] = res.color_loss;
-        pixel_results[b + 6] = res.warp_loss;
-        pixel_results[b + 7] = res.warp_views as f32;
-    }
+    write_record(pixel_results, i, &pixel_result_record(&res));
 }
 
 /// Signed distance at points: `out[i] = sdf_at(points[i])`. Bindings 0..=7 as

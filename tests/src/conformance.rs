@@ -12,6 +12,7 @@ use himap::dump::{nonfinite_sequence, random_rays, small_config};
 use himap::synth::{synth_intrinsics, synth_pose, Scene};
 use himap_core::adam::AdamConfig;
 use himap_core::camera::{Intrinsics, Pose};
+use himap_core::gpu_abi::{pixel_result_record, ray_result_record};
 use himap_core::mapping::{pack_rgba8, MappingLoss, PixelResult, PixelSample};
 use himap_core::model::{
     ray_forward, Group, LossConfig, ModelConfig, ModelLayout, PerGroup, Ray, RayCache, RayResult,
@@ -62,33 +63,15 @@ pub fn assert_same_f32(what: &str, want: &[f32], got: &[f32]) {
     );
 }
 
-/// The floats of ray results, in order.
+/// The floats of ray results, in order (their GPU records).
 pub fn result_floats(r: &[RayResult]) -> Vec<f32> {
-    r.iter()
-        .flat_map(|r| {
-            [
-                r.color[0], r.color[1], r.color[2], r.depth, r.opacity, r.loss,
-            ]
-        })
-        .collect()
+    r.iter().flat_map(ray_result_record).collect()
 }
 
-/// The floats of pixel results (and their valid-view counts, exact as f32), in order.
+/// The floats of pixel results (and their valid-view counts, exact as f32), in order (their
+/// GPU records).
 pub fn pixel_floats(r: &[PixelResult]) -> Vec<f32> {
-    r.iter()
-        .flat_map(|r| {
-            [
-                r.color[0],
-                r.color[1],
-                r.color[2],
-                r.depth,
-                r.opacity,
-                r.color_loss,
-                r.warp_loss,
-                r.warp_views as f32,
-            ]
-        })
-        .collect()
+    r.iter().flat_map(pixel_result_record).collect()
 }
 
 /// What must agree between two steps' statistics.

@@ -33,18 +33,18 @@
 
 use crate::buffers::{
     download, download_f32, ensure, ensure_in, f32_bytes, param_bindings, u32_bytes, upload,
-    upload_at, GroupBuffers, Part,
+    upload_at, GroupBuffers,
 };
 use crate::device;
 use crate::error::VulkanError;
 use crate::passes::{dispatch_items, push_bytes, range_push, Passes, Pipelines};
-use crate::raw::{Buffer, Gpu, Memory, Pipeline, ShaderModule};
-use crate::{entry, words};
+use crate::raw::{Buffer, Gpu, Memory, PhysicalInfo, ShaderModule};
+use crate::words;
 use himap_core::adam::{AdamConfig, AdamStep};
 use himap_core::error::check_len;
 use himap_core::gpu_abi::{
-    TrainPush, PIXEL_RESULT_FLOATS, PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS,
-    SAMPLE_FLOATS,
+    pixel_result_from_record, ray_result_from_record, TrainPush, PIXEL_RESULT_FLOATS,
+    PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS, SAMPLE_FLOATS,
 };
 use himap_core::mapping::PixelResult;
 use himap_core::model::{Group, LossConfig, ModelLayout, PerGroup, Ray, RayResult, NUM_GROUPS};
@@ -60,6 +60,71 @@ pub struct VulkanOptions {
     /// `maxStorageBufferRange`, at most `maxMemoryAllocationSize`). Lower values force the
     /// grids to be split across two bindings (used by the tests).
     pub max_binding_bytes: Option<u64>,
+}
+
+/// The largest storage-buffer binding a group may use, and the name of the limit that sets it
+/// (named in the error for a tensor that does not fit).
+struct BindingLimit {
+    /// The device's: `maxStorageBufferRange`, at most `maxMemoryAllocationSize`.
+    device_max: u64,
+    /// A group's: the device's, or [`VulkanOptions::max_binding_bytes`] below it.
+    group: u64,
+    name: &'static str,
+}
+
+impl BindingLimit {
+    fn new(info: &PhysicalInfo, options: &VulkanOptions) -> Self {
+        let range = info.max_storage_buffer_range as u64;
+        let device_max = range.min(info.max_memory_allocation_size);
+        let device_name = if range <= info.max_memory_allocation_size {
+            "maxStorageBufferRange"
+        } else {
+            "maxMemoryAllocationSize"
+        };
+        match options.max_binding_bytes {
+            Some(b) if b < device_max => Self {
+                device_max,
+                group: b.max(64),
+                name: "VulkanOptions::max_binding_bytes",
+            },
+            _ => Self {
+                device_max,
+                group: device_max,
+                name: device_name,
+            },
+        }
+    }
+
+    /// The parts of each group: one, or two for a grid whose i64 gradient (the largest buffer
+    /// of a group) does not fit one binding; larger groups are an error naming the limit.
+    fn split(&self, lens: [usize; NUM_GROUPS]) -> Result<[Vec<usize>; NUM_GROUPS], VulkanError> {
+        let part_max = (self.group / 8) as usize;
+        let mut part_lens: [Vec<usize>; NUM_GROUPS] = Default::default();
+        for (g, &len) in lens.iter().enumerate() {
+            let grid = g < 2;
+            part_lens[g] = if len <= part_max {
+                vec![len]
+            } else if grid && len <= 2 * part_max {
+                vec![part_max, len - part_max]
+            } else {
+                let split = if grid {
+                    " (even split in two bindings)"
+                } else {
+                    ""
+                };
+                return Err(VulkanError::TensorTooLarge {
+                    what: format!(
+                        "the fixed-point gradient of {}{split}",
+                        Group::ALL[g].name()
+                    ),
+                    bytes: len as u64 * 8,
+                    limit: if grid { 2 * self.group } else { self.group },
+                    limit_name: self.name,
+                });
+            };
+        }
+        Ok(part_lens)
+    }
 }
 
 /// The Vulkan backend. Construct with [`VulkanBackend::new`].
@@ -133,68 +198,11 @@ impl VulkanBackend {
         }
         let device = device::open()?;
         let info = device.info.clone();
-        let device_max =
-            (info.max_storage_buffer_range as u64).min(info.max_memory_allocation_size);
-        let mut limit_name =
-            if (info.max_storage_buffer_range as u64) <= info.max_memory_allocation_size {
-                "maxStorageBufferRange"
-            } else {
-                "maxMemoryAllocationSize"
-            };
-        let max_binding = device_max;
-        let group_binding = match options.max_binding_bytes {
-            Some(b) if b < device_max => {
-                limit_name = "VulkanOptions::max_binding_bytes";
-                b.max(64)
-            }
-            _ => device_max,
-        };
-        // The i64 gradient is the largest buffer of a group: a part holds at most this many.
-        let part_max = (group_binding / 8) as usize;
-        let mut part_lens: [Vec<usize>; NUM_GROUPS] = Default::default();
-        for (g, &len) in lens.iter().enumerate() {
-            let grid = g < 2;
-            let parts = if len <= part_max {
-                vec![len]
-            } else if grid && len <= 2 * part_max {
-                vec![part_max, len - part_max]
-            } else {
-                return Err(VulkanError::TensorTooLarge {
-                    what: format!(
-                        "the fixed-point gradient of {}{}",
-                        Group::ALL[g].name(),
-                        if grid {
-                            " (even split in two bindings)"
-                        } else {
-                            ""
-                        }
-                    ),
-                    bytes: len as u64 * 8,
-                    limit: if grid {
-                        2 * group_binding
-                    } else {
-                        group_binding
-                    },
-                    limit_name,
-                });
-            };
-            part_lens[g] = parts;
-        }
+        let limit = BindingLimit::new(&info, &options);
+        let part_lens = limit.split(lens)?;
         let mut gpu = Gpu::new(&device)?;
         let module = ShaderModule::new(&device, &crate::shader_words())?;
-        let pipelines = Pipelines {
-            sample_forward: Pipeline::new(&device, &module, &entry::SAMPLE_FORWARD)?,
-            ray_train: Pipeline::new(&device, &module, &entry::RAY_TRAIN)?,
-            sample_backward: Pipeline::new(&device, &module, &entry::SAMPLE_BACKWARD)?,
-            ray_render: Pipeline::new(&device, &module, &entry::RAY_RENDER)?,
-            pixel_rays: Pipeline::new(&device, &module, &entry::PIXEL_RAYS)?,
-            pixel_train: Pipeline::new(&device, &module, &entry::PIXEL_TRAIN)?,
-            adam: Pipeline::new(&device, &module, &entry::ADAM)?,
-            loss_check: Pipeline::new(&device, &module, &entry::LOSS_CHECK)?,
-            adam_check: Pipeline::new(&device, &module, &entry::ADAM_CHECK)?,
-            sdf: Pipeline::new(&device, &module, &entry::SDF_QUERY)?,
-            color: Pipeline::new(&device, &module, &entry::COLOR_QUERY)?,
-        };
+        let pipelines = Pipelines::new(&device, &module)?;
         let w = model_words(&layout, [&part_lens[0], &part_lens[1]]);
         let mut staging = None;
         let mut model_words = Buffer::new(
@@ -204,38 +212,9 @@ impl VulkanBackend {
             "the model layout",
         )?;
         upload(&mut gpu, &mut staging, &mut model_words, &u32_bytes(&w))?;
-        let mut make = |g: usize| -> Result<GroupBuffers, VulkanError> {
-            let name = Group::ALL[g].name();
-            let mut parts = Vec::new();
-            let mut start = 0;
-            for &len in &part_lens[g] {
-                let n = len as u64;
-                let mut p = Buffer::new(
-                    &device,
-                    n * 4,
-                    Memory::Device,
-                    &format!("{name} parameters"),
-                )?;
-                upload(
-                    &mut gpu,
-                    &mut staging,
-                    &mut p,
-                    &f32_bytes(&params[g][start..start + len]),
-                )?;
-                parts.push(Part {
-                    params: p,
-                    m: Buffer::new(&device, n * 4, Memory::Device, &format!("{name} Adam m"))?,
-                    v: Buffer::new(&device, n * 4, Memory::Device, &format!("{name} Adam v"))?,
-                    grad: Buffer::new(&device, n * 8, Memory::Device, &format!("{name} gradient"))?,
-                    start,
-                    len,
-                });
-                start += len;
-            }
-            Ok(GroupBuffers {
-                parts,
-                len: lens[g],
-            })
+        let mut make = |g: usize| {
+            let (name, parts) = (Group::ALL[g].name(), &part_lens[g]);
+            GroupBuffers::upload(&device, &mut gpu, &mut staging, name, parts, params[g])
         };
         let groups = PerGroup([make(0)?, make(1)?, make(2)?, make(3)?, make(4)?]);
         {
@@ -255,7 +234,7 @@ impl VulkanBackend {
             adam,
             t: 0,
             max_groups: info.max_workgroup_count_x.clamp(1, 65535),
-            max_binding,
+            max_binding: limit.device_max,
             model_words,
             groups,
             input: None,
@@ -478,15 +457,39 @@ impl VulkanBackend {
             .collect()
     }
 
+    /// Writes a mapping batch's window (intrinsics, poses, slots, loss settings as words) and
+    /// pixels, and sizes the buffers of its pixel rays and results.
+    fn stage_window(&mut self, batch: &MapBatch<'_>, slots: &[u32]) -> Result<(), VulkanError> {
+        let n = batch.pixels.len();
+        let frames = batch.poses.len();
+        let mut w = vec![0u32; words::WINDOW];
+        let size = (self.store.width, self.store.height);
+        let (k, poses, loss) = (&batch.k, batch.poses, &batch.loss);
+        words::window_to_words(k, size, &slots[..frames], poses, loss, &mut w);
+        let bytes = (words::WINDOW * 4) as u64;
+        ensure(&self.gpu, &mut self.window, bytes, "the mapping window")?
+            .write_mapped(0, &u32_bytes(&w));
+        self.check_binding("the pixels of a batch", (n * 12) as u64)?;
+        let flat: Vec<u32> = batch
+            .pixels
+            .iter()
+            .flat_map(|p| [p.frame, p.u, p.v])
+            .collect();
+        ensure(&self.gpu, &mut self.pixels, (n * 12) as u64, "pixels")?
+            .write_mapped(0, &u32_bytes(&flat));
+        let ray_bytes = (n * RAY_FLOATS * 4) as u64;
+        self.check_binding("the rays of a batch", ray_bytes)?;
+        ensure(&self.gpu, &mut self.input, ray_bytes, "pixel rays")?;
+        let result_bytes = (n * PIXEL_RESULT_FLOATS * 4) as u64;
+        self.check_binding("the pixel results of a batch", result_bytes)?;
+        ensure(&self.gpu, &mut self.output, result_bytes, "pixel results")?;
+        Ok(())
+    }
+
     fn read_results(&self, results: &mut [RayResult]) {
         let f = self.read_floats(results.len() * RESULT_FLOATS);
         for (r, v) in results.iter_mut().zip(f.as_chunks::<RESULT_FLOATS>().0) {
-            *r = RayResult {
-                color: [v[0], v[1], v[2]],
-                depth: v[3],
-                opacity: v[4],
-                loss: v[5],
-            };
+            *r = ray_result_from_record(v);
         }
     }
 
@@ -732,48 +735,7 @@ impl Backend for VulkanBackend {
         check_len("results", results.len(), batch.pixels.len())?;
         let slots = window_slots(batch, &self.store)?;
         let n = batch.pixels.len();
-        let frames = batch.poses.len();
-        let mut w = vec![0u32; words::WINDOW];
-        words::window_to_words(
-            &batch.k,
-            (self.store.width, self.store.height),
-            &slots[..frames],
-            batch.poses,
-            &batch.loss,
-            &mut w,
-        );
-        ensure(
-            &self.gpu,
-            &mut self.window,
-            (words::WINDOW * 4) as u64,
-            "the mapping window",
-        )?
-        .write_mapped(0, &u32_bytes(&w));
-        self.check_binding("the pixels of a batch", (n * 12) as u64)?;
-        let flat: Vec<u32> = batch
-            .pixels
-            .iter()
-            .flat_map(|p| [p.frame, p.u, p.v])
-            .collect();
-        ensure(&self.gpu, &mut self.pixels, (n * 12) as u64, "pixels")?
-            .write_mapped(0, &u32_bytes(&flat));
-        self.check_binding("the rays of a batch", (n * RAY_FLOATS * 4) as u64)?;
-        ensure(
-            &self.gpu,
-            &mut self.input,
-            (n * RAY_FLOATS * 4) as u64,
-            "pixel rays",
-        )?;
-        self.check_binding(
-            "the pixel results of a batch",
-            (n * PIXEL_RESULT_FLOATS * 4) as u64,
-        )?;
-        ensure(
-            &self.gpu,
-            &mut self.output,
-            (n * PIXEL_RESULT_FLOATS * 4) as u64,
-            "pixel results",
-        )?;
+        self.stage_window(batch, &slots)?;
         let records = self.stage_samples(n)?;
         let steps = self.adam_steps();
         let seed = batch.loss.seed;
@@ -853,14 +815,7 @@ impl Backend for VulkanBackend {
             .iter_mut()
             .zip(f.as_chunks::<PIXEL_RESULT_FLOATS>().0)
         {
-            *r = PixelResult {
-                color: [v[0], v[1], v[2]],
-                depth: v[3],
-                opacity: v[4],
-                color_loss: v[5],
-                warp_loss: v[6],
-                warp_views: v[7] as u32,
-            };
+            *r = pixel_result_from_record(v);
         }
         let stats = summarize_pixels(results, self.t);
         Ok(self.finish_step(stats))

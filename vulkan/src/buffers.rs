@@ -3,8 +3,10 @@
 //! field-reading entry points take, growable host-visible or device-local buffers, and
 //! uploads and downloads (through a staging buffer when the destination is not mapped).
 
+use std::sync::Arc;
+
 use crate::error::VulkanError;
-use crate::raw::{Buffer, Gpu, Memory};
+use crate::raw::{Buffer, Device, Gpu, Memory};
 use himap_core::gpu_abi::PARAM_BINDINGS;
 use himap_core::model::{Group, PerGroup};
 
@@ -27,6 +29,46 @@ pub(crate) struct GroupBuffers {
 }
 
 impl GroupBuffers {
+    /// Device buffers of a group in parts of `part_lens` (summing to `params.len()`): the
+    /// parameters uploaded, moments and gradient allocated (zeroed by the caller).
+    pub(crate) fn upload(
+        device: &Arc<Device>,
+        gpu: &mut Gpu,
+        staging: &mut Option<Buffer>,
+        name: &str,
+        part_lens: &[usize],
+        params: &[f32],
+    ) -> Result<Self, VulkanError> {
+        let mut parts = Vec::with_capacity(part_lens.len());
+        let mut start = 0;
+        for &len in part_lens {
+            let n = len as u64;
+            let buffer = |bytes: u64, what: &str| {
+                Buffer::new(device, bytes, Memory::Device, &format!("{name} {what}"))
+            };
+            let mut p = buffer(n * 4, "parameters")?;
+            upload(
+                gpu,
+                staging,
+                &mut p,
+                &f32_bytes(&params[start..start + len]),
+            )?;
+            parts.push(Part {
+                params: p,
+                m: buffer(n * 4, "Adam m")?,
+                v: buffer(n * 4, "Adam v")?,
+                grad: buffer(n * 8, "gradient")?,
+                start,
+                len,
+            });
+            start += len;
+        }
+        Ok(Self {
+            parts,
+            len: params.len(),
+        })
+    }
+
     pub(crate) fn lo(&self) -> &Part {
         &self.parts[0]
     }

@@ -3,10 +3,12 @@
 //! the per-sample forward and backward and the checked Adam update of a step (see the order
 //! of the passes in [`crate::VulkanBackend`]'s module documentation).
 
+use std::sync::Arc;
+
 use crate::buffers::{grad_bindings, param_bindings, GroupBuffers};
 use crate::error::VulkanError;
-use crate::raw::{Buffer, Pipeline, Recorder, Set};
-use crate::WORKGROUP_SIZE;
+use crate::raw::{Buffer, Device, Pipeline, Recorder, Set, ShaderModule};
+use crate::{entry, WORKGROUP_SIZE};
 use himap_core::adam::AdamStep;
 use himap_core::gpu_abi::{AdamPush, LossCheckPush, PushWords, RangePush, SamplePush};
 use himap_core::model::{PerGroup, NUM_GROUPS};
@@ -23,6 +25,26 @@ pub(crate) struct Pipelines {
     pub(crate) adam_check: Pipeline,
     pub(crate) sdf: Pipeline,
     pub(crate) color: Pipeline,
+}
+
+impl Pipelines {
+    /// Every pipeline of the backend's passes, from the module's entry points.
+    pub(crate) fn new(device: &Arc<Device>, module: &ShaderModule) -> Result<Self, VulkanError> {
+        let p = |e| Pipeline::new(device, module, e);
+        Ok(Self {
+            sample_forward: p(&entry::SAMPLE_FORWARD)?,
+            ray_train: p(&entry::RAY_TRAIN)?,
+            sample_backward: p(&entry::SAMPLE_BACKWARD)?,
+            ray_render: p(&entry::RAY_RENDER)?,
+            pixel_rays: p(&entry::PIXEL_RAYS)?,
+            pixel_train: p(&entry::PIXEL_TRAIN)?,
+            adam: p(&entry::ADAM)?,
+            loss_check: p(&entry::LOSS_CHECK)?,
+            adam_check: p(&entry::ADAM_CHECK)?,
+            sdf: p(&entry::SDF_QUERY)?,
+            color: p(&entry::COLOR_QUERY)?,
+        })
+    }
 }
 
 pub(crate) fn push_bytes(p: impl PushWords) -> [u8; 32] {

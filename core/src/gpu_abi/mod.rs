@@ -41,6 +41,52 @@ pub const RESULT_LOSS: (usize, usize) = (5, 5);
 /// Offsets of the colour and warp loss fields in a [`PIXEL_RESULT_FLOATS`] record.
 pub const PIXEL_RESULT_LOSSES: (usize, usize) = (5, 6);
 
+/// A [`crate::model::RayResult`] as its record in a results buffer ([`RESULT_FLOATS`]).
+#[inline(always)]
+pub fn ray_result_record(r: &crate::model::RayResult) -> [f32; RESULT_FLOATS] {
+    [
+        r.color[0], r.color[1], r.color[2], r.depth, r.opacity, r.loss,
+    ]
+}
+
+/// The [`crate::model::RayResult`] of a record written by [`ray_result_record`].
+pub fn ray_result_from_record(v: &[f32; RESULT_FLOATS]) -> crate::model::RayResult {
+    crate::model::RayResult {
+        color: [v[0], v[1], v[2]],
+        depth: v[3],
+        opacity: v[4],
+        loss: v[5],
+    }
+}
+
+/// A [`crate::mapping::PixelResult`] as its record in a results buffer
+/// ([`PIXEL_RESULT_FLOATS`]; the valid-view count as an f32, exact).
+#[inline(always)]
+pub fn pixel_result_record(r: &crate::mapping::PixelResult) -> [f32; PIXEL_RESULT_FLOATS] {
+    [
+        r.color[0],
+        r.color[1],
+        r.color[2],
+        r.depth,
+        r.opacity,
+        r.color_loss,
+        r.warp_loss,
+        r.warp_views as f32,
+    ]
+}
+
+/// The [`crate::mapping::PixelResult`] of a record written by [`pixel_result_record`].
+pub fn pixel_result_from_record(v: &[f32; PIXEL_RESULT_FLOATS]) -> crate::mapping::PixelResult {
+    crate::mapping::PixelResult {
+        color: [v[0], v[1], v[2]],
+        depth: v[3],
+        opacity: v[4],
+        color_loss: v[5],
+        warp_loss: v[6],
+        warp_views: v[7] as u32,
+    }
+}
+
 /// Push constants of the single-kernel entry points (probe, fixed-point accumulation, MLP
 /// and grid forward).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

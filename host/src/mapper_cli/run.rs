@@ -26,8 +26,12 @@ where
 {
     let cfg = &opts.config;
     let (n, k) = (ds.len(), ctx.k);
-    let backend_name = format!("{} ({})", backend.name(), ctx.reason);
-    let (threads, params) = (backend.threads(), backend.layout().param_count());
+    let run = RunInfo {
+        backend_name: format!("{} ({})", backend.name(), ctx.reason),
+        threads: backend.threads(),
+        parameters: backend.layout().param_count(),
+        ctx,
+    };
     let mcfg = cfg.mapper_config()?;
     let mut px = vec![PixelSample::default(); mcfg.pixels as usize];
     let mut res = vec![PixelResult::default(); mcfg.pixels as usize];
@@ -43,11 +47,61 @@ where
         None => None,
     };
     let mut mapper = start_mapper(opts, ds, backend, mcfg, k, &mut px, &mut res, &resumed)?;
-    let mut rec = UpdateRecorder::new(opts, k, &mcfg, n, resumed.as_ref().map(|(run, _)| run))?;
+    let mut rec = UpdateRecorder::new(opts, k, &mcfg, n, resumed.as_ref().map(|(r, _)| r))?;
     let progress = Progress::new(opts, n);
-    let start = resumed.as_ref().map_or(0, |(run, _)| run.pushed as usize);
+    let start = resumed.as_ref().map_or(0, |(r, _)| r.pushed as usize);
+    let poses = push_frames(opts, ds, &run, start, &mut mapper, &mut rec, &progress)?;
+    progress.pb.finish_and_clear();
+    let steps = StepCounts {
+        iterations: mapper.iterations(),
+        rejected: mapper.rejected_steps(),
+        lr_reductions: mapper.lr_reductions(),
+    };
+    if steps.lr_reductions > 0 {
+        eprintln!(
+            "warning: {} mapping steps were not finite; the learning rates were lowered {} \
+             times (mapper.rejected_lr_after / rejected_lr_factor)",
+            steps.rejected, steps.lr_reductions
+        );
+    }
+    progress
+        .log
+        .borrow_mut()
+        .done(rec.rows.len(), rec.mapping_s);
+    finish_run(opts, ds, run, mapper.into_backend(), &rec, &poses, steps)
+}
 
-    // Poses of the frames pushed so far (the mesh level is measured over them after mapping).
+/// What a run's summary says of the backend and the scene box.
+struct RunInfo {
+    backend_name: String,
+    threads: usize,
+    parameters: usize,
+    ctx: RunContext,
+}
+
+/// The mapper's step counts at the end of a run.
+struct StepCounts {
+    iterations: u32,
+    rejected: u32,
+    lr_reductions: u32,
+}
+
+/// Pushes frames `start..` (up to `--stop-after`) into the mapper one at a time, records
+/// every update, writes checkpoints, and runs the final update after the last frame. Returns
+/// the poses of every pushed frame (the mesh level is measured over them).
+fn push_frames<B: MapBackend>(
+    opts: &MapOptions,
+    ds: &dyn crate::dataset::Dataset,
+    run: &RunInfo,
+    start: usize,
+    mapper: &mut Mapper<'_, B>,
+    rec: &mut UpdateRecorder<'_>,
+    progress: &Progress,
+) -> anyhow::Result<Vec<Pose>>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let n = ds.len();
     let mut poses: Vec<Pose> = Vec::with_capacity(n);
     for i in 0..start {
         poses.push(ds.frame(i)?.pose);
@@ -56,13 +110,16 @@ where
     // Frames pushed at the last checkpoint this run wrote (named when the backend fails).
     let mut last_checkpoint: Option<usize> = None;
     let mut last_frame: Option<crate::dataset::Frame> = None;
+    let fail = |e, at: &str, last_checkpoint| {
+        mid_run_error(e, at, &run.backend_name, last_checkpoint, opts)
+    };
     let pushed = opts.stop_after.map_or(n, |s| s.min(n));
     for i in start..pushed {
         let frame = ds.frame(i)?;
         poses.push(frame.pose);
-        if !inside(&ctx.aabb, frame.pose.origin()) {
+        if !inside(&run.ctx.aabb, frame.pose.origin()) {
             if rec.outside_box == 0 {
-                progress.warn(&outside_box_warning(&frame, &ctx));
+                progress.warn(&outside_box_warning(&frame, &run.ctx));
             }
             rec.outside_box += 1;
         }
@@ -73,57 +130,87 @@ where
             .push_frame_observed(&rgba, frame.pose, &mut |info: &IterInfo| {
                 progress.iteration(i, frame.index, info, last_psnr)
             })
-            .map_err(|e| {
-                let at = format!("frame {}", frame.index);
-                mid_run_error(e, &at, &backend_name, last_checkpoint, opts)
-            })?;
-        let dt = t0.elapsed().as_secs_f64();
+            .map_err(|e| fail(e, &format!("frame {}", frame.index), last_checkpoint))?;
         if let Some(r) = rep {
-            rec.record(mapper.backend_mut(), r, &frame, dt, &progress)?;
+            rec.record(
+                mapper.backend_mut(),
+                r,
+                &frame,
+                t0.elapsed().as_secs_f64(),
+                progress,
+            )?;
         }
         progress.pb.inc(1);
         last_frame = Some(frame);
         if opts.checkpoint_every > 0 && (i + 1).is_multiple_of(opts.checkpoint_every) {
-            let id = DatasetId::new(&opts.dataset, n, k.width, k.height, &poses);
-            let lrs = Group::ALL.map(|g| mapper.backend().adam_lr(g));
-            let run = RunState::new(
-                cfg,
-                id,
-                &mapper.state(),
-                lrs,
-                &rec.rows,
-                rec.outside_box,
-                rec.mapping_s,
-            );
-            let data = mapper.backend_mut().export()?;
-            checkpoint::save(&opts.out, cfg, &data, &run)?;
+            write_checkpoint(opts, mapper, rec, &poses, n)?;
             last_checkpoint = Some(i + 1);
         }
     }
     if let Some(frame) = last_frame.filter(|_| pushed == n) {
         let t0 = Instant::now();
-        if let Some(r) = mapper.flush(&mut |_: &IterInfo| {}).map_err(|e| {
-            mid_run_error(e, "the final update", &backend_name, last_checkpoint, opts)
-        })? {
-            let dt = t0.elapsed().as_secs_f64();
-            rec.record(mapper.backend_mut(), r, &frame, dt, &progress)?;
+        let rep = mapper
+            .flush(&mut |_: &IterInfo| {})
+            .map_err(|e| fail(e, "the final update", last_checkpoint))?;
+        if let Some(r) = rep {
+            rec.record(
+                mapper.backend_mut(),
+                r,
+                &frame,
+                t0.elapsed().as_secs_f64(),
+                progress,
+            )?;
         }
     }
-    progress.pb.finish_and_clear();
-    let iterations = mapper.iterations();
-    let (rejected_steps, lr_reductions) = (mapper.rejected_steps(), mapper.lr_reductions());
-    if lr_reductions > 0 {
-        eprintln!(
-            "warning: {rejected_steps} mapping steps were not finite; the learning rates were \
-             lowered {lr_reductions} times (mapper.rejected_lr_after / rejected_lr_factor)"
-        );
-    }
-    progress
-        .log
-        .borrow_mut()
-        .done(rec.rows.len(), rec.mapping_s);
+    Ok(poses)
+}
 
-    let mut backend = mapper.into_backend();
+/// Saves the map, the mapper's state, the learning rates and the metrics so far
+/// (`--checkpoint-every`).
+fn write_checkpoint<B: MapBackend>(
+    opts: &MapOptions,
+    mapper: &mut Mapper<'_, B>,
+    rec: &UpdateRecorder<'_>,
+    poses: &[Pose],
+    n: usize,
+) -> anyhow::Result<()>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let cfg = &opts.config;
+    let k = mapper.intrinsics();
+    let id = DatasetId::new(&opts.dataset, n, k.width, k.height, poses);
+    let lrs = Group::ALL.map(|g| mapper.backend().adam_lr(g));
+    let state = mapper.state();
+    let run = RunState::new(
+        cfg,
+        id,
+        &state,
+        lrs,
+        &rec.rows,
+        rec.outside_box,
+        rec.mapping_s,
+    );
+    let data = mapper.backend_mut().export()?;
+    checkpoint::save(&opts.out, cfg, &data, &run)
+}
+
+/// After the last frame: the final-map evaluation, the meshes and their metrics, the saved
+/// map and `summary.json`.
+fn finish_run<B: MapBackend>(
+    opts: &MapOptions,
+    ds: &dyn crate::dataset::Dataset,
+    run: RunInfo,
+    mut backend: B,
+    rec: &UpdateRecorder<'_>,
+    poses: &[Pose],
+    steps: StepCounts,
+) -> anyhow::Result<MapSummary>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let cfg = &opts.config;
+    let (n, k, ctx) = (ds.len(), run.ctx.k, &run.ctx);
     let fin = final_map_eval(&mut backend, ds, &rec.ek, cfg.eval.final_every as usize)?;
     if opts.progress {
         eprintln!(
@@ -134,9 +221,8 @@ where
             fmt_opt(fin.depth_l1_cm, 2)
         );
     }
-    let surface = write_meshes(&mut backend, opts, &rec.ek, &k, &poses, ctx.aabb)?;
+    let surface = write_meshes(&mut backend, opts, &rec.ek, &k, poses, ctx.aabb)?;
     let (mesh_metrics, mesh_gt, mesh_err) = evaluate_mesh(opts, ds, &surface);
-
     let data = backend.export()?;
     save_map(&opts.out.join("map.safetensors"), cfg, &data)?;
 
@@ -147,14 +233,14 @@ where
         frames: n,
         width: k.width,
         height: k.height,
-        backend: backend_name,
-        threads,
+        backend: run.backend_name,
+        threads: run.threads,
         scene_box: [ctx.aabb.min, ctx.aabb.max],
         scene_box_source: ctx.box_src.to_string(),
         updates: rows.len(),
-        iterations,
-        rejected_steps,
-        lr_reductions,
+        iterations: steps.iterations,
+        rejected_steps: steps.rejected,
+        lr_reductions: steps.lr_reductions,
         mean_psnr: mean(rows.iter().map(|r| r.psnr)),
         mean_ssim: mean(rows.iter().map(|r| r.ssim)),
         mean_depth_l1_cm: mean(rows.iter().filter_map(|r| r.depth_l1_cm)),
@@ -173,9 +259,9 @@ where
         beta: surface.beta,
         seconds_total: ctx.t_start.elapsed().as_secs_f64(),
         seconds_mapping: mapping_s,
-        seconds_per_iteration: mapping_s / iterations.max(1) as f64,
+        seconds_per_iteration: mapping_s / steps.iterations.max(1) as f64,
         seconds_per_frame: mapping_s / n.max(1) as f64,
-        parameters: params,
+        parameters: run.parameters,
         config: cfg.clone(),
     };
     let sp = opts.out.join("summary.json");
