@@ -21,6 +21,9 @@ pub mod fixed;
 pub mod gpu_abi;
 pub mod grid;
 pub mod loss;
+/// The mapper keeps its frames in `heapless` vectors: host-side only (the shaders build the
+/// core without the feature).
+#[cfg(feature = "heapless")]
 pub mod mapper;
 pub mod mapping;
 pub mod math;

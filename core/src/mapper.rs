@@ -58,6 +58,7 @@ use crate::rng::{hash_u32, SplitMix};
 use crate::step::{Backend, ImageStore, MapBatch};
 use crate::warp::{WarpConfig, MAX_WINDOW};
 use crate::Error;
+use heapless::Vec;
 
 /// Largest local set plus frames pending for the next update.
 pub const MAX_LOCAL: usize = 32;
@@ -374,12 +375,6 @@ pub struct HeldFrame {
     pub pose: Pose,
 }
 
-const EMPTY: HeldFrame = HeldFrame {
-    id: 0,
-    slot: 0,
-    pose: Pose::IDENTITY,
-};
-
 /// Most image slots a mapper hands out.
 pub const MAX_SLOTS: usize = MAX_LOCAL + MAX_KEYFRAMES;
 
@@ -389,16 +384,13 @@ pub const MAX_SLOTS: usize = MAX_LOCAL + MAX_KEYFRAMES;
 /// held frames ([`MapperState::held`]) in their slots.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MapperState {
-    /// Local frames (oldest first) and the keyframe cache (`local_len`, `kf_len` valid).
-    pub local: [HeldFrame; MAX_LOCAL],
-    pub local_len: usize,
-    pub keyframes: [HeldFrame; MAX_KEYFRAMES],
-    pub kf_len: usize,
+    /// Local frames (oldest first) and the keyframe cache (oldest first).
+    pub local: Vec<HeldFrame, MAX_LOCAL>,
+    pub keyframes: Vec<HeldFrame, MAX_KEYFRAMES>,
     /// Frames pushed since the last update.
     pub pending: usize,
-    /// Free image slots (a stack; `free_len` valid).
-    pub free: [u32; MAX_SLOTS],
-    pub free_len: usize,
+    /// Free image slots (a stack: the last is handed out next).
+    pub free: Vec<u32, MAX_SLOTS>,
     pub initialized: bool,
     pub pushed: u32,
     pub total_iters: u32,
@@ -412,9 +404,7 @@ pub struct MapperState {
 impl MapperState {
     /// The frames whose images the backend holds: local frames, then keyframes.
     pub fn held(&self) -> impl Iterator<Item = &HeldFrame> + '_ {
-        self.local[..self.local_len.min(MAX_LOCAL)]
-            .iter()
-            .chain(self.keyframes[..self.kf_len.min(MAX_KEYFRAMES)].iter())
+        self.local.iter().chain(self.keyframes.iter())
     }
 }
 
@@ -430,10 +420,9 @@ pub struct Mapper<'a, B: Backend> {
     rng: SplitMix,
     pixels: &'a mut [PixelSample],
     results: &'a mut [PixelResult],
-    win_ids: [u32; MAX_WINDOW],
-    win_poses: [Pose; MAX_WINDOW],
-    win_slots: [u32; MAX_WINDOW],
-    win_len: usize,
+    win_ids: Vec<u32, MAX_WINDOW>,
+    win_poses: Vec<Pose, MAX_WINDOW>,
+    win_slots: Vec<u32, MAX_WINDOW>,
     win_kf: usize,
     overlap_rays: [Ray; MAX_OVERLAP_PIXELS],
     overlap_out: [RayResult; MAX_OVERLAP_PIXELS],
@@ -461,26 +450,18 @@ impl<'a, B: Backend> Mapper<'a, B> {
         crate::error::check_len("mapper pixel buffer", pixels.len(), cfg.pixels as usize)?;
         crate::error::check_len("mapper result buffer", results.len(), cfg.pixels as usize)?;
         let n_slots = cfg.slots_needed() as usize;
-        let mut free = [0u32; MAX_SLOTS];
-        // Pop from the end: slot 0 is used first.
-        let mut i = 0;
-        while i < n_slots {
-            free[i] = (n_slots - 1 - i) as u32;
-            i += 1;
-        }
+        // Popped from the end: slot 0 is used first.
+        let free: Vec<u32, MAX_SLOTS> = (0..n_slots as u32).rev().collect();
         Ok(Self {
             backend,
             cfg,
             k,
             store,
             st: MapperState {
-                local: [EMPTY; MAX_LOCAL],
-                local_len: 0,
-                keyframes: [EMPTY; MAX_KEYFRAMES],
-                kf_len: 0,
+                local: Vec::new(),
+                keyframes: Vec::new(),
                 pending: 0,
                 free,
-                free_len: n_slots,
                 initialized: false,
                 pushed: 0,
                 total_iters: 0,
@@ -492,10 +473,9 @@ impl<'a, B: Backend> Mapper<'a, B> {
             rng: SplitMix::new(cfg.seed),
             pixels,
             results,
-            win_ids: [0; MAX_WINDOW],
-            win_poses: [Pose::IDENTITY; MAX_WINDOW],
-            win_slots: [0; MAX_WINDOW],
-            win_len: 0,
+            win_ids: Vec::new(),
+            win_poses: Vec::new(),
+            win_slots: Vec::new(),
             win_kf: 0,
             overlap_rays: [Ray {
                 origin: [0.0; 3],
@@ -530,12 +510,11 @@ impl<'a, B: Backend> Mapper<'a, B> {
     ) -> Result<Self, Error> {
         let mut m = Self::new(backend, cfg, k, pixels, results)?;
         let slots = cfg.slots_needed();
-        let ok = state.local_len <= MAX_LOCAL
-            && state.kf_len <= cfg.max_keyframes as usize
-            && state.free_len <= slots as usize
-            && state.local_len + state.kf_len + state.free_len == slots as usize
+        let (local, kf, free) = (state.local.len(), state.keyframes.len(), state.free.len());
+        let ok = kf <= cfg.max_keyframes as usize
+            && local + kf + free == slots as usize
             && state.held().all(|e| e.slot < slots)
-            && state.free[..state.free_len].iter().all(|&s| s < slots);
+            && state.free.iter().all(|&s| s < slots);
         if !ok {
             return Err(Error::InvalidConfig(
                 "mapper: the saved state does not fit this configuration",
@@ -593,17 +572,17 @@ impl<'a, B: Backend> Mapper<'a, B> {
 
     /// Ids of the local frames, oldest first (including frames pending for the next update).
     pub fn local_ids(&self) -> impl Iterator<Item = u32> + '_ {
-        self.st.local[..self.st.local_len].iter().map(|e| e.id)
+        self.st.local.iter().map(|e| e.id)
     }
 
     /// Ids of the keyframe cache, oldest first.
     pub fn keyframe_ids(&self) -> impl Iterator<Item = u32> + '_ {
-        self.st.keyframes[..self.st.kf_len].iter().map(|e| e.id)
+        self.st.keyframes.iter().map(|e| e.id)
     }
 
     /// Ids of the frames of the last update's window (keyframes first).
     pub fn window_ids(&self) -> &[u32] {
-        &self.win_ids[..self.win_len]
+        &self.win_ids
     }
 
     /// Pushes a posed frame (packed RGBA8, see [`crate::mapping::pack_rgba8`]; camera-to-world
@@ -629,30 +608,28 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 Error::InvalidConfig("mapper: pose is not a finite rigid transform").into(),
             );
         }
-        if self.st.local_len >= MAX_LOCAL || self.st.free_len == 0 {
-            return Err(Error::Capacity {
-                what: "mapper frame slots",
-                needed: self.st.local_len as u64 + 1,
-                capacity: MAX_LOCAL as u64,
-            }
-            .into());
-        }
-        self.st.free_len -= 1;
-        let slot = self.st.free[self.st.free_len];
-        if let Err(e) = self.backend.upload_frame(slot, rgba) {
-            self.st.free_len += 1;
-            return Err(MapperError::Backend(e));
-        }
-        self.st.local[self.st.local_len] = HeldFrame {
+        let capacity = Error::Capacity {
+            what: "mapper frame slots",
+            needed: self.st.local.len() as u64 + 1,
+            capacity: MAX_LOCAL as u64,
+        };
+        let (true, Some(&slot)) = (!self.st.local.is_full(), self.st.free.last()) else {
+            return Err(capacity.into());
+        };
+        self.backend
+            .upload_frame(slot, rgba)
+            .map_err(MapperError::Backend)?;
+        self.st.free.pop();
+        let held = HeldFrame {
             id: self.st.pushed,
             slot,
             pose,
         };
-        self.st.local_len += 1;
+        self.st.local.push(held).map_err(|_| capacity)?;
         self.st.pushed += 1;
         self.st.pending += 1;
         if !self.st.initialized {
-            if self.st.local_len >= self.cfg.init_frames as usize {
+            if self.st.local.len() >= self.cfg.init_frames as usize {
                 return self.initialise(observe).map(Some);
             }
             return Ok(None);
@@ -669,7 +646,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
         &mut self,
         observe: &mut F,
     ) -> Result<Option<UpdateReport>, MapperError<B::Error>> {
-        if self.st.local_len == 0 {
+        if self.st.local.is_empty() {
             return Ok(None);
         }
         if !self.st.initialized {
@@ -685,12 +662,9 @@ impl<'a, B: Backend> Mapper<'a, B> {
         &mut self,
         observe: &mut F,
     ) -> Result<UpdateReport, MapperError<B::Error>> {
-        self.win_len = 0;
-        self.win_kf = 0;
-        let mut i = 0;
-        while i < self.st.local_len {
+        self.clear_window();
+        for i in 0..self.st.local.len() {
             self.add_to_window(self.st.local[i]);
-            i += 1;
         }
         let online_t = self.backend.layout().config.min_transmittance;
         let init_t = self.cfg.init_min_transmittance;
@@ -720,10 +694,8 @@ impl<'a, B: Backend> Mapper<'a, B> {
         self.evict_to(self.cfg.local_frames as usize)?;
         let candidates = self.select_keyframes()?;
         // window: the chosen keyframes (already in win_*), then the local frames
-        let mut i = 0;
-        while i < self.st.local_len {
+        for i in 0..self.st.local.len() {
             self.add_to_window(self.st.local[i]);
-            i += 1;
         }
         let (first, last) = self.run_iters(UpdateKind::Online, self.cfg.iters, observe)?;
         self.st.pending = 0;
@@ -744,49 +716,49 @@ impl<'a, B: Backend> Mapper<'a, B> {
             iters,
             first,
             last,
-            window_frames: self.win_len as u32,
+            window_frames: self.win_ids.len() as u32,
             window_keyframes: self.win_kf as u32,
             candidates,
-            keyframes: self.st.kf_len as u32,
+            keyframes: self.st.keyframes.len() as u32,
         }
     }
 
+    /// Empties the window (its frames and keyframe count).
+    fn clear_window(&mut self) {
+        self.win_ids.clear();
+        self.win_poses.clear();
+        self.win_slots.clear();
+        self.win_kf = 0;
+    }
+
     fn add_to_window(&mut self, e: HeldFrame) {
-        if self.win_len < MAX_WINDOW {
-            self.win_ids[self.win_len] = e.id;
-            self.win_poses[self.win_len] = e.pose;
-            self.win_slots[self.win_len] = e.slot;
-            self.win_len += 1;
+        // A full window takes no more frames (the three lists grow together).
+        if self.win_ids.push(e.id).is_ok() {
+            let _ = self.win_poses.push(e.pose);
+            let _ = self.win_slots.push(e.slot);
         }
     }
 
     fn free_slot(&mut self, slot: u32) {
-        if self.st.free_len < MAX_SLOTS {
-            self.st.free[self.st.free_len] = slot;
-            self.st.free_len += 1;
-        }
+        // Every slot comes from the stack, so it always has room for it again.
+        let _ = self.st.free.push(slot);
     }
 
     /// Cuts the local set to its `keep` most recent frames: the oldest leaving frame joins the
     /// keyframe cache, the other leaving frames are dropped.
     fn evict_to(&mut self, keep: usize) -> Result<(), Error> {
-        if self.st.local_len <= keep {
+        let n = self.st.local.len();
+        if n <= keep {
             return Ok(());
         }
-        let leave = self.st.local_len - keep;
+        let leave = n - keep;
         let oldest = self.st.local[0];
-        let mut i = 1;
-        while i < leave {
+        for i in 1..leave {
             let slot = self.st.local[i].slot;
             self.free_slot(slot);
-            i += 1;
         }
-        let mut j = 0;
-        while j < keep {
-            self.st.local[j] = self.st.local[j + leave];
-            j += 1;
-        }
-        self.st.local_len = keep;
+        self.st.local.copy_within(leave.., 0);
+        self.st.local.truncate(keep);
         self.add_keyframe(oldest);
         Ok(())
     }
@@ -797,52 +769,44 @@ impl<'a, B: Backend> Mapper<'a, B> {
             self.free_slot(e.slot);
             return;
         }
-        if self.st.kf_len >= cap {
+        if self.st.keyframes.len() >= cap {
             match self.cfg.keyframe_overflow {
                 KeyframeOverflow::Thin => {
-                    let mut w = 0;
-                    let mut r = 0;
-                    while r < self.st.kf_len {
-                        if r % 2 == 0 {
-                            self.st.keyframes[w] = self.st.keyframes[r];
-                            w += 1;
-                        } else {
-                            let slot = self.st.keyframes[r].slot;
-                            self.free_slot(slot);
-                        }
-                        r += 1;
+                    // keep cache indices 0, 2, 4, ...
+                    let n = self.st.keyframes.len();
+                    for r in (1..n).step_by(2) {
+                        let slot = self.st.keyframes[r].slot;
+                        self.free_slot(slot);
                     }
-                    self.st.kf_len = w;
+                    for w in 1..n.div_ceil(2) {
+                        self.st.keyframes[w] = self.st.keyframes[2 * w];
+                    }
+                    self.st.keyframes.truncate(n.div_ceil(2));
                 }
                 KeyframeOverflow::DropOldest => {
-                    let slot = self.st.keyframes[0].slot;
-                    self.free_slot(slot);
-                    let mut i = 1;
-                    while i < self.st.kf_len {
-                        self.st.keyframes[i - 1] = self.st.keyframes[i];
-                        i += 1;
-                    }
-                    self.st.kf_len -= 1;
+                    let oldest = self.st.keyframes.remove(0);
+                    self.free_slot(oldest.slot);
                 }
             }
         }
-        self.st.keyframes[self.st.kf_len] = e;
-        self.st.kf_len += 1;
+        // `max_keyframes <= MAX_KEYFRAMES` (validated), so there is room now.
+        if let Err(e) = self.st.keyframes.push(e) {
+            self.free_slot(e.slot);
+        }
     }
 
     /// Chooses the window's keyframes (into `win_*`, resetting the window) and returns the
     /// number of candidates.
     fn select_keyframes(&mut self) -> Result<u32, MapperError<B::Error>> {
-        self.win_len = 0;
-        self.win_kf = 0;
+        self.clear_window();
         let want = self.cfg.window_keyframes as usize;
         if want + self.cfg.global_keyframes as usize == 0
-            || self.st.kf_len == 0
-            || self.st.local_len == 0
+            || self.st.keyframes.is_empty()
+            || self.st.local.is_empty()
         {
             return Ok(0);
         }
-        let cur = self.st.local[self.st.local_len - 1].pose;
+        let cur = self.st.local[self.st.local.len() - 1].pose;
         let k = self.k;
         let n = self.cfg.overlap_pixels as usize;
         let mut i = 0;
@@ -866,7 +830,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
         let (w, h) = (k.width as f32, k.height as f32);
         let mut n_cand = 0usize;
         let mut f = 0;
-        while f < self.st.kf_len {
+        while f < self.st.keyframes.len() {
             let kf = self.st.keyframes[f].pose;
             let mut inside = 0u32;
             let mut r = 0;
@@ -915,11 +879,11 @@ impl<'a, B: Backend> Mapper<'a, B> {
         // Global keyframes: drawn uniformly from every other keyframe of the cache.
         let mut take = take;
         let global = self.cfg.global_keyframes as usize;
-        if global > 0 && take < self.st.kf_len {
+        if global > 0 && take < self.st.keyframes.len() {
             // the cache indices not chosen yet, after the chosen ones
             let mut m = take;
             let mut f = 0;
-            while f < self.st.kf_len {
+            while f < self.st.keyframes.len() {
                 if !self.candidates[..take].contains(&(f as u16)) {
                     self.candidates[m] = f as u16;
                     m += 1;
@@ -948,7 +912,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
     }
 
     fn sample_pixels(&mut self, kind: UpdateKind) {
-        let n = self.win_len.max(1) as u32;
+        let n = self.win_ids.len().max(1) as u32;
         let total = self.cfg.pixels;
         // the frames new since the last update are the last `n_new` of the window
         let n_new = if kind == UpdateKind::Online && self.cfg.new_frame_share > 0.0 {
@@ -1074,8 +1038,8 @@ impl<'a, B: Backend> Mapper<'a, B> {
             };
             let batch = MapBatch {
                 k: self.k,
-                poses: &self.win_poses[..self.win_len],
-                slots: &self.win_slots[..self.win_len],
+                poses: &self.win_poses,
+                slots: &self.win_slots,
                 pixels: self.pixels,
                 loss,
             };
@@ -1576,7 +1540,7 @@ mod tests {
         push_n(&mut a, 47);
         let state = a.state();
         assert!(
-            state.initialized && state.kf_len > 0 && state.pending > 0,
+            state.initialized && !state.keyframes.is_empty() && state.pending > 0,
             "{state:?}"
         );
         let before = a.backend().calls.len();
@@ -1605,7 +1569,7 @@ mod tests {
         assert_eq!(a.state(), b.state());
         // a state that does not fit the configuration is an error
         let mut bad = state.clone();
-        bad.free_len += 1;
+        bad.free.push(0).unwrap();
         assert!(Mapper::restore(
             Mock::new(c.slots_needed()),
             c,

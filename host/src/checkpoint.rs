@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use himap_core::camera::Pose;
-use himap_core::mapper::{HeldFrame, MapperState, MAX_KEYFRAMES, MAX_LOCAL, MAX_SLOTS};
+use himap_core::mapper::{HeldFrame, MapperState};
 use himap_core::model::NUM_GROUPS;
 use serde::{Deserialize, Serialize};
 
@@ -136,16 +136,10 @@ impl RunState {
         Self {
             config: config.to_toml(),
             dataset,
-            local: m.local[..m.local_len]
-                .iter()
-                .map(FrameBits::from_core)
-                .collect(),
-            keyframes: m.keyframes[..m.kf_len]
-                .iter()
-                .map(FrameBits::from_core)
-                .collect(),
+            local: m.local.iter().map(FrameBits::from_core).collect(),
+            keyframes: m.keyframes.iter().map(FrameBits::from_core).collect(),
             pending: m.pending,
-            free: m.free[..m.free_len].to_vec(),
+            free: m.free.to_vec(),
             initialized: m.initialized,
             pushed: m.pushed,
             total_iters: m.total_iters,
@@ -162,25 +156,17 @@ impl RunState {
 
     /// The mapper's state (lengths checked against the module's capacities).
     pub fn mapper_state(&self) -> anyhow::Result<MapperState> {
-        if self.local.len() > MAX_LOCAL
-            || self.keyframes.len() > MAX_KEYFRAMES
-            || self.free.len() > MAX_SLOTS
-        {
-            bail!("the checkpoint's frame lists exceed the mapper's capacities");
-        }
-        let empty = HeldFrame {
-            id: 0,
-            slot: 0,
-            pose: Pose::IDENTITY,
+        let too_long =
+            || anyhow::anyhow!("the checkpoint's frame lists exceed the mapper's capacities");
+        let frames = |list: &[FrameBits]| -> anyhow::Result<Vec<HeldFrame>> {
+            list.iter().map(FrameBits::to_core).collect()
         };
-        let mut s = MapperState {
-            local: [empty; MAX_LOCAL],
-            local_len: self.local.len(),
-            keyframes: [empty; MAX_KEYFRAMES],
-            kf_len: self.keyframes.len(),
+        Ok(MapperState {
+            local: heapless::Vec::from_slice(&frames(&self.local)?).map_err(|_| too_long())?,
+            keyframes: heapless::Vec::from_slice(&frames(&self.keyframes)?)
+                .map_err(|_| too_long())?,
             pending: self.pending,
-            free: [0; MAX_SLOTS],
-            free_len: self.free.len(),
+            free: heapless::Vec::from_slice(&self.free).map_err(|_| too_long())?,
             initialized: self.initialized,
             pushed: self.pushed,
             total_iters: self.total_iters,
@@ -188,15 +174,7 @@ impl RunState {
             rejected_run: self.rejected_run,
             lr_reductions: self.lr_reductions,
             rng: self.rng,
-        };
-        for (d, f) in s.local.iter_mut().zip(&self.local) {
-            *d = f.to_core()?;
-        }
-        for (d, f) in s.keyframes.iter_mut().zip(&self.keyframes) {
-            *d = f.to_core()?;
-        }
-        s.free[..self.free.len()].copy_from_slice(&self.free);
-        Ok(s)
+        })
     }
 
     /// The learning rates per group.
