@@ -11,13 +11,15 @@
 //! The GPU runs the same per-item functions ([`ray_train`], [`ray_forward_taped`],
 //! [`pixel_train`]) as per-sample passes; its driver is the Vulkan backend's own.
 
-use crate::camera::PoseRead;
-use crate::mapping::{pixel_train, MappingLoss, PixelResult, PixelSample, WindowView};
+use crate::camera::{Pose, PoseRead};
+use crate::mapping::{
+    pixel_train, MappingLoss, PixelResult, PixelSample, SlotPixels, WindowImages, WindowView,
+};
 use crate::model::{
     ray_forward_taped, ray_train, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
     RayResult, SampleScratch, SampleTape,
 };
-use crate::step::{summarize, summarize_pixels, StepStats};
+use crate::step::{summarize, summarize_pixels, MapBatch, StepStats};
 use crate::warp::FrameImages;
 use crate::ParamRead;
 
@@ -155,6 +157,22 @@ pub struct MapPixels<'a, I: FrameImages + ?Sized, PS: PoseRead + ?Sized> {
     pub pixels: &'a [PixelSample],
     pub window: WindowView<'a, I, PS>,
     pub loss: &'a MappingLoss,
+}
+
+impl<'a, P: SlotPixels + ?Sized> MapPixels<'a, WindowImages<'a, P>, [Pose]> {
+    /// The job of a mapping batch over `images`, the window's slot images (see
+    /// [`MapBatch::window_images`]).
+    pub fn of(batch: &'a MapBatch<'a>, images: &'a WindowImages<'a, P>) -> Self {
+        MapPixels {
+            pixels: batch.pixels,
+            window: WindowView {
+                k: batch.k,
+                poses: batch.poses,
+                images,
+            },
+            loss: &batch.loss,
+        }
+    }
 }
 
 impl<I: FrameImages + ?Sized, PS: PoseRead + ?Sized> BatchJob for MapPixels<'_, I, PS> {

@@ -12,7 +12,7 @@ use crate::batch::{run_items, BatchJob, ItemRunner, MapPixels, RenderRays, Train
 use crate::camera::{Intrinsics, Pose};
 use crate::error::check_len;
 use crate::fixed;
-use crate::mapping::{MappingLoss, PixelResult, PixelSample, WindowImages, WindowView};
+use crate::mapping::{MappingLoss, PixelResult, PixelSample, SlotPixels, WindowImages};
 use crate::model::{
     Group, LossConfig, ModelGradSink, ModelLayout, Params, PerGroup, Ray, RayCache, RayResult,
     Recompute, SampleScratch, NUM_GROUPS,
@@ -212,6 +212,23 @@ pub fn window_slots(batch: &MapBatch<'_>, store: &ImageStore) -> Result<[u32; MA
     Ok(out)
 }
 
+impl<'a> MapBatch<'a> {
+    /// The window's slot images over a backend's store of `pixels`, after
+    /// [`window_slots`]'s checks.
+    pub fn window_images<P: SlotPixels + ?Sized>(
+        &self,
+        store: &ImageStore,
+        pixels: &'a P,
+    ) -> Result<WindowImages<'a, P>, Error> {
+        Ok(WindowImages {
+            width: store.width,
+            height: store.height,
+            slots: window_slots(self, store)?,
+            pixels,
+        })
+    }
+}
+
 /// Step statistics of a mapping iteration (loss summed in pixel order).
 pub fn summarize_pixels(results: &[PixelResult], t: u32) -> StepStats {
     let mut loss = 0.0f32;
@@ -282,22 +299,8 @@ impl<'a> CpuBackend<'a> {
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
     ) -> Result<StepStats, Error> {
-        let slots = window_slots(batch, &self.store)?;
-        let images = WindowImages {
-            width: self.store.width,
-            height: self.store.height,
-            slots,
-            pixels: &*self.images,
-        };
-        let job = MapPixels {
-            pixels: batch.pixels,
-            window: WindowView {
-                k: batch.k,
-                poses: batch.poses,
-                images: &images,
-            },
-            loss: &batch.loss,
-        };
+        let images = batch.window_images(&self.store, &*self.images)?;
+        let job = MapPixels::of(batch, &images);
         let (params, mut sink) = params_and_sink(&mut self.groups);
         drive(&self.layout, &params, &mut sink, &job, results, self.t)
     }

@@ -12,16 +12,14 @@ use std::sync::{Mutex, MutexGuard};
 use himap_core::adam::{AdamConfig, AdamStep};
 use himap_core::batch::{run_items, BatchJob, ItemRunner, MapPixels, RenderRays, TrainRays};
 use himap_core::fixed;
-use himap_core::mapping::{PixelResult, SlotPixels, WindowImages, WindowView};
+use himap_core::mapping::{PixelResult, SlotPixels};
 use himap_core::mlp::{MlpScratch, MAX_WIDTH};
 use himap_core::model::{
     color_at, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout, Params, PerGroup, Ray,
     RayCache, RayResult, SampleScratch, StoredTape, NUM_GROUPS,
 };
 use himap_core::render::MAX_SAMPLES;
-use himap_core::step::{
-    copy_group, window_slots, write_group, Backend, ImageStore, MapBatch, StepStats,
-};
+use himap_core::step::{copy_group, write_group, Backend, ImageStore, MapBatch, StepStats};
 use rayon::prelude::*;
 
 /// Rays per parallel work item.
@@ -643,22 +641,9 @@ impl ParallelCpuBackend {
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
     ) -> Result<StepStats, CpuError> {
-        let slots = window_slots(batch, &self.store)?;
-        let images = WindowImages {
-            width: self.store.width,
-            height: self.store.height,
-            slots,
-            pixels: &HostPixels(&self.images[..]),
-        };
-        let job = MapPixels {
-            pixels: batch.pixels,
-            window: WindowView {
-                k: batch.k,
-                poses: batch.poses,
-                images: &images,
-            },
-            loss: &batch.loss,
-        };
+        let pixels = HostPixels(&self.images[..]);
+        let images = batch.window_images(&self.store, &pixels)?;
+        let job = MapPixels::of(batch, &images);
         self.run_job(&job, results)
     }
 
@@ -815,23 +800,21 @@ impl ParallelCpuBackend {
 
     /// Signed distances at world points.
     pub fn sdf(&self, points: &[[f32; 3]], out: &mut [f32]) {
-        let layout = self.data.layout;
-        let params = self.data.view();
-        self.pool.install(|| {
-            points
-                .par_chunks(256)
-                .zip(out.par_chunks_mut(256))
-                .for_each(|(p, o)| {
-                    let mut s = Box::new(SampleScratch::new());
-                    for (p, o) in p.iter().zip(o.iter_mut()) {
-                        *o = sdf_at(&layout, &params, *p, &mut s);
-                    }
-                });
-        });
+        self.query(points, out, sdf_at);
     }
 
     /// Colours at world points.
     pub fn color(&self, points: &[[f32; 3]], out: &mut [[f32; 3]]) {
+        self.query(points, out, color_at);
+    }
+
+    /// `out[i] = f(points[i])` for a field query `f` ([`sdf_at`], [`color_at`]), in parallel.
+    fn query<T: Send>(
+        &self,
+        points: &[[f32; 3]],
+        out: &mut [T],
+        f: impl Fn(&ModelLayout, &Params<'_, [f32]>, [f32; 3], &mut SampleScratch) -> T + Sync,
+    ) {
         let layout = self.data.layout;
         let params = self.data.view();
         self.pool.install(|| {
@@ -841,7 +824,7 @@ impl ParallelCpuBackend {
                 .for_each(|(p, o)| {
                     let mut s = Box::new(SampleScratch::new());
                     for (p, o) in p.iter().zip(o.iter_mut()) {
-                        *o = color_at(&layout, &params, *p, &mut s);
+                        *o = f(&layout, &params, *p, &mut s);
                     }
                 });
         });

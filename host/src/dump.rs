@@ -176,33 +176,8 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
     let mut results = vec![RayResult::default(); rays.len()];
     let stats = backend.train_step(&rays, &loss, &mut results)?;
 
-    // Per-ray samples and weights, recomputed with the same seed (the forward is pure).
+    let (t_all, w_all, n_all) = ray_samples(&layout, &initial, &rays, loss.seed);
     let s = cfg.samples as usize;
-    let mut t_all = vec![0f32; rays.len() * s];
-    let mut w_all = vec![0f32; rays.len() * s];
-    let mut n_all = vec![0i64; rays.len()];
-    {
-        let view = initial.view();
-        let mut cache = Box::new(RayCache::new());
-        let mut scratch = Box::new(SampleScratch::new());
-        for (i, ray) in rays.iter().enumerate() {
-            himap_core::model::ray_forward(
-                &layout,
-                &view,
-                ray,
-                i as u32,
-                loss.seed,
-                true,
-                &mut cache,
-                &mut scratch,
-            );
-            n_all[i] = cache.n as i64;
-            for k in 0..cache.n {
-                t_all[i * s + k] = cache.t[k];
-                w_all[i * s + k] = cache.out.weights[k];
-            }
-        }
-    }
 
     let n = rays.len();
     let mut tensors: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = Vec::new();
@@ -275,7 +250,50 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
         i64_bytes(&n_all),
     ));
 
-    let config = json!({
+    let config = config_json(&cfg, &layout, &loss);
+    write_tensors(out, &tensors, &config.to_string())?;
+    Ok(stats.loss)
+}
+
+/// Per-ray sample depths, rendering weights (`samples` slots per ray) and sample counts of the
+/// step's forward, recomputed from the initial parameters with the step's seed (the forward
+/// is pure).
+fn ray_samples(
+    layout: &ModelLayout,
+    initial: &ModelData,
+    rays: &[Ray],
+    seed: u32,
+) -> (Vec<f32>, Vec<f32>, Vec<i64>) {
+    let s = layout.config.samples as usize;
+    let mut t_all = vec![0f32; rays.len() * s];
+    let mut w_all = vec![0f32; rays.len() * s];
+    let mut n_all = vec![0i64; rays.len()];
+    let view = initial.view();
+    let mut cache = Box::new(RayCache::new());
+    let mut scratch = Box::new(SampleScratch::new());
+    for (i, ray) in rays.iter().enumerate() {
+        himap_core::model::ray_forward(
+            layout,
+            &view,
+            ray,
+            i as u32,
+            seed,
+            true,
+            &mut cache,
+            &mut scratch,
+        );
+        n_all[i] = cache.n as i64;
+        for k in 0..cache.n {
+            t_all[i * s + k] = cache.t[k];
+            w_all[i * s + k] = cache.out.weights[k];
+        }
+    }
+    (t_all, w_all, n_all)
+}
+
+/// The file's `himap_config` metadata: the model's shapes and the step's loss settings.
+fn config_json(cfg: &ModelConfig, layout: &ModelLayout, loss: &LossConfig) -> serde_json::Value {
+    json!({
         "aabb": {"min": cfg.aabb.min, "max": cfg.aabb.max},
         "geometry_grid": grid_json(&layout.geometry_grid),
         "appearance_grid": grid_json(&layout.appearance_grid),
@@ -292,7 +310,15 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
         "color_to_geometry": loss.color_to_geometry,
         "fixed_point_frac_bits": himap_core::fixed::FRAC_BITS,
         "max_levels": MAX_LEVELS,
-    });
+    })
+}
+
+/// Writes the tensors with the configuration as metadata, atomically.
+fn write_tensors(
+    out: &Path,
+    tensors: &[(String, Dtype, Vec<usize>, Vec<u8>)],
+    config: &str,
+) -> anyhow::Result<()> {
     let mut meta = HashMap::new();
     meta.insert("himap_config".to_string(), config.to_string());
     meta.insert("format".to_string(), "himap-dump-step-v1".to_string());
@@ -305,5 +331,5 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
     let bytes = safetensors::serialize(views, Some(meta))
         .with_context(|| format!("serialising {}", out.display()))?;
     crate::atomic::write_bytes_atomic(out, &bytes)?;
-    Ok(stats.loss)
+    Ok(())
 }

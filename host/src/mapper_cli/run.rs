@@ -132,13 +132,8 @@ where
             })
             .map_err(|e| fail(e, &format!("frame {}", frame.index), last_checkpoint))?;
         if let Some(r) = rep {
-            rec.record(
-                mapper.backend_mut(),
-                r,
-                &frame,
-                t0.elapsed().as_secs_f64(),
-                progress,
-            )?;
+            let dt = t0.elapsed().as_secs_f64();
+            rec.record(mapper.backend_mut(), r, &frame, dt, progress)?;
         }
         progress.pb.inc(1);
         last_frame = Some(frame);
@@ -153,13 +148,8 @@ where
             .flush(&mut |_: &IterInfo| {})
             .map_err(|e| fail(e, "the final update", last_checkpoint))?;
         if let Some(r) = rep {
-            rec.record(
-                mapper.backend_mut(),
-                r,
-                &frame,
-                t0.elapsed().as_secs_f64(),
-                progress,
-            )?;
+            let dt = t0.elapsed().as_secs_f64();
+            rec.record(mapper.backend_mut(), r, &frame, dt, progress)?;
         }
     }
     Ok(poses)
