@@ -574,29 +574,13 @@ impl Backend for VulkanBackend {
             })
         };
         let (gpu, passes, output) = self.ray_passes(records)?;
-        let (pipelines, groups, model_words, input, samples) = (
-            passes.pipelines,
-            passes.groups,
-            passes.model_words,
-            passes.rays,
-            passes.samples,
-        );
+        let pipelines = passes.pipelines;
         gpu.submit(|r| {
             passes.zero_grads(r);
             if n > 0 {
                 passes.sample_forward(r, loss.seed, true)?;
                 let pipeline = &pipelines.ray_train;
-                let set = r.bind(
-                    pipeline,
-                    &[
-                        model_words,
-                        &groups[Group::Beta].lo().params,
-                        &groups[Group::Beta].lo().grad,
-                        input,
-                        samples,
-                        output,
-                    ],
-                )?;
+                let set = passes.bind_composite(r, pipeline, &[], output)?;
                 dispatch_items(r, pipeline, &set, n, passes.max_groups, train_push);
                 r.barrier();
                 passes.sample_backward(r)?;
@@ -783,20 +767,7 @@ impl Backend for VulkanBackend {
                 r.barrier();
                 passes.sample_forward(r, seed, true)?;
                 let pipeline = &pipelines.pixel_train;
-                let set = r.bind(
-                    pipeline,
-                    &[
-                        model_words,
-                        &groups[Group::Beta].lo().params,
-                        &groups[Group::Beta].lo().grad,
-                        window,
-                        pixels,
-                        images,
-                        input,
-                        samples,
-                        output,
-                    ],
-                )?;
+                let set = passes.bind_composite(r, pipeline, &[window, pixels, images], output)?;
                 dispatch_items(r, pipeline, &set, n, passes.max_groups, range_push);
                 r.barrier();
                 passes.sample_backward(r)?;

@@ -11,7 +11,7 @@ use crate::raw::{Buffer, Device, Pipeline, Recorder, Set, ShaderModule};
 use crate::{entry, WORKGROUP_SIZE};
 use himap_core::adam::AdamStep;
 use himap_core::gpu_abi::{AdamPush, LossCheckPush, PushWords, RangePush, SamplePush};
-use himap_core::model::{PerGroup, NUM_GROUPS};
+use himap_core::model::{Group, PerGroup, NUM_GROUPS};
 
 pub(crate) struct Pipelines {
     pub(crate) sample_forward: Pipeline,
@@ -115,6 +115,23 @@ pub(crate) struct Passes<'a> {
 }
 
 impl<'a> Passes<'a> {
+    /// Binds a compositing pass (`ray_train_cs`, `pixel_train_cs`): the model words and beta's
+    /// parameter and gradient, then `inputs` (the window's, for a mapping step), then the rays,
+    /// the samples and `output`.
+    pub(crate) fn bind_composite(
+        &self,
+        r: &mut Recorder<'a>,
+        pipeline: &Pipeline,
+        inputs: &[&'a Buffer],
+        output: &'a Buffer,
+    ) -> Result<Set<'a>, VulkanError> {
+        let beta = self.groups[Group::Beta].lo();
+        let mut b = vec![self.model_words, &beta.params, &beta.grad];
+        b.extend_from_slice(inputs);
+        b.extend_from_slice(&[self.rays, self.samples, output]);
+        r.bind(pipeline, &b)
+    }
+
     /// Zeroes every gradient buffer and the step's non-finite count.
     pub(crate) fn zero_grads(&self, r: &mut Recorder<'a>) {
         for p in self.groups.iter().flat_map(|g| g.parts.iter()) {
