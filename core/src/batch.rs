@@ -77,14 +77,15 @@ pub fn run_items<J: BatchJob, P: ParamRead + ?Sized, T: SampleTape, S: ModelGrad
     }
 }
 
-/// A training step over rays: [`ray_train`] for every ray.
+/// Rays: a training step ([`ray_train`] for every ray, with `loss`) or, without a loss, a
+/// render at the bins' centres (no jitter; the sink receives nothing).
 #[derive(Clone, Copy)]
-pub struct TrainRays<'a> {
+pub struct Rays<'a> {
     pub rays: &'a [Ray],
-    pub loss: &'a LossConfig,
+    pub loss: Option<&'a LossConfig>,
 }
 
-impl BatchJob for TrainRays<'_> {
+impl BatchJob for Rays<'_> {
     type Output = RayResult;
 
     fn len(&self) -> usize {
@@ -97,54 +98,22 @@ impl BatchJob for TrainRays<'_> {
         r: &mut ItemRunner<'_, P, T, S>,
         i: usize,
     ) -> RayResult {
+        let (ray, id) = (&self.rays[i], i as u32);
+        let Some(loss) = self.loss else {
+            ray_forward_taped(
+                r.layout, r.params, ray, id, 0, false, r.cache, r.scratch, r.tape,
+            );
+            let out = &r.cache.out;
+            return RayResult {
+                color: out.color,
+                depth: out.depth,
+                opacity: out.opacity,
+                loss: 0.0,
+            };
+        };
         ray_train(
-            r.layout,
-            r.params,
-            &self.rays[i],
-            i as u32,
-            self.loss,
-            r.cache,
-            r.scratch,
-            r.tape,
-            r.sink,
+            r.layout, r.params, ray, id, loss, r.cache, r.scratch, r.tape, r.sink,
         )
-    }
-
-    fn summarize(results: &[RayResult], t: u32) -> StepStats {
-        summarize(results, t)
-    }
-}
-
-/// A render of rays at the bins' centres (no jitter, no gradient; the sink receives nothing).
-#[derive(Clone, Copy)]
-pub struct RenderRays<'a> {
-    pub rays: &'a [Ray],
-}
-
-impl BatchJob for RenderRays<'_> {
-    type Output = RayResult;
-
-    fn len(&self) -> usize {
-        self.rays.len()
-    }
-
-    #[inline(always)]
-    fn run<P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
-        &self,
-        r: &mut ItemRunner<'_, P, T, S>,
-        i: usize,
-    ) -> RayResult {
-        let ray = &self.rays[i];
-        ray_forward_taped(
-            r.layout, r.params, ray, i as u32, 0, false, r.cache, r.scratch, r.tape,
-        );
-        let out = &r.cache.out;
-        RayResult {
-            color: out.color,
-            depth: out.depth,
-            opacity: out.opacity,
-            loss: 0.0,
-        }
     }
 
     fn summarize(results: &[RayResult], t: u32) -> StepStats {

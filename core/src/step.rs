@@ -8,7 +8,7 @@
 //! of the per-ray losses taken in ray order (f32), so it is also independent of scheduling.
 
 use crate::adam::{self, AdamConfig, AdamStep};
-use crate::batch::{run_items, BatchJob, ItemRunner, MapPixels, RenderRays, TrainRays};
+use crate::batch::{run_items, BatchJob, ItemRunner, MapPixels, Rays};
 use crate::camera::{Intrinsics, Pose};
 use crate::error::check_len;
 use crate::fixed;
@@ -337,7 +337,10 @@ impl<'a> CpuBackend<'a> {
         results: &mut [RayResult],
     ) -> Result<StepStats, Error> {
         let (params, mut sink) = params_and_sink(&mut self.groups);
-        let job = TrainRays { rays, loss };
+        let job = Rays {
+            rays,
+            loss: Some(loss),
+        };
         drive(&self.layout, &params, &mut sink, &job, results, self.t)
     }
 
@@ -463,7 +466,7 @@ impl Backend for CpuBackend<'_> {
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), Error> {
         let (params, _) = params_and_sink(&mut self.groups);
-        let job = RenderRays { rays };
+        let job = Rays { rays, loss: None };
         drive(&self.layout, &params, &mut NullSink, &job, results, self.t)?;
         Ok(())
     }

@@ -10,7 +10,7 @@
 use std::sync::{Mutex, MutexGuard};
 
 use himap_core::adam::{AdamConfig, AdamStep};
-use himap_core::batch::{run_items, BatchJob, ItemRunner, MapPixels, RenderRays, TrainRays};
+use himap_core::batch::{run_items, BatchJob, ItemRunner, MapPixels, Rays};
 use himap_core::fixed;
 use himap_core::mapping::{PixelResult, SlotPixels};
 use himap_core::mlp::{MlpScratch, MAX_WIDTH};
@@ -848,13 +848,19 @@ impl Backend for ParallelCpuBackend {
         loss: &LossConfig,
         results: &mut [RayResult],
     ) -> Result<StepStats, CpuError> {
-        let mut stats = self.run_job(&TrainRays { rays, loss }, results)?;
+        let mut stats = self.run_job(
+            &Rays {
+                rays,
+                loss: Some(loss),
+            },
+            results,
+        )?;
         self.finish_step(&mut stats);
         Ok(stats)
     }
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), CpuError> {
-        self.run_job(&RenderRays { rays }, results)?;
+        self.run_job(&Rays { rays, loss: None }, results)?;
         Ok(())
     }
 
