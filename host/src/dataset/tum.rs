@@ -247,6 +247,65 @@ pub fn remap(img: &RgbImage, map: &[[f32; 2]]) -> RgbImage {
     out
 }
 
+/// Pairs every colour frame with the nearest pose (and depth image when `has_depth`) within
+/// `max_dt` seconds; frames without one are dropped (and counted).
+fn associate(
+    rgb: Vec<(f64, PathBuf)>,
+    gt: &[(f64, Pose)],
+    depth: &[(f64, PathBuf)],
+    has_depth: bool,
+    max_dt: f64,
+) -> (Vec<Entry>, usize) {
+    let mut entries = Vec::new();
+    let mut dropped = 0;
+    for (t, path) in rgb {
+        let Some(g) = nearest(gt, t, max_dt) else {
+            dropped += 1;
+            continue;
+        };
+        let d = if has_depth {
+            match nearest(depth, t, max_dt) {
+                Some(j) => Some(depth[j].1.clone()),
+                None => {
+                    dropped += 1;
+                    continue;
+                }
+            }
+        } else {
+            None
+        };
+        entries.push(Entry {
+            timestamp: t,
+            rgb: path,
+            depth: d,
+            pose: gt[g].1,
+        });
+    }
+    (entries, dropped)
+}
+
+/// The undistortion map of the camera when asked for and its coefficients are not all zero;
+/// non-finite coefficients are an error.
+fn undistortion(
+    root: &Path,
+    camera: &CameraConfig,
+    native: &Intrinsics,
+    undistort: bool,
+) -> Result<Option<Vec<[f32; 2]>>, DatasetError> {
+    match camera.distortion {
+        Some(dist) if undistort && dist.iter().any(|&x| x != 0.0) => {
+            if dist.iter().any(|x| !x.is_finite()) {
+                return Err(DatasetError::Camera {
+                    path: root.to_path_buf(),
+                    msg: format!("distortion coefficients are not finite: {dist:?}"),
+                });
+            }
+            Ok(Some(undistort_map(native, dist)))
+        }
+        _ => Ok(None),
+    }
+}
+
 impl TumDataset {
     /// Opens the sequence in `root`: reads the lists and the ground truth, associates them and
     /// checks that every selected image exists and that the first one has the camera's size.
@@ -310,31 +369,7 @@ impl TumDataset {
                 msg: "no poses listed".into(),
             });
         }
-        let mut entries = Vec::new();
-        let mut dropped = 0;
-        for (t, path) in rgb {
-            let Some(g) = nearest(&gt, t, cfg.tum_max_dt) else {
-                dropped += 1;
-                continue;
-            };
-            let d = if has_depth {
-                match nearest(&depth, t, cfg.tum_max_dt) {
-                    Some(j) => Some(depth[j].1.clone()),
-                    None => {
-                        dropped += 1;
-                        continue;
-                    }
-                }
-            } else {
-                None
-            };
-            entries.push(Entry {
-                timestamp: t,
-                rgb: path,
-                depth: d,
-                pose: gt[g].1,
-            });
-        }
+        let (entries, dropped) = associate(rgb, &gt, &depth, has_depth, cfg.tum_max_dt);
         if entries.is_empty() {
             return Err(DatasetError::Empty {
                 path: rgb_txt,
@@ -360,18 +395,7 @@ impl TumDataset {
         if let Some(d) = &first.depth {
             check_image_header(d, sel.depth_native())?;
         }
-        let undistort_map = match camera.distortion {
-            Some(dist) if cfg.undistort && dist.iter().any(|&x| x != 0.0) => {
-                if dist.iter().any(|x| !x.is_finite()) {
-                    return Err(DatasetError::Camera {
-                        path: root.to_path_buf(),
-                        msg: format!("distortion coefficients are not finite: {dist:?}"),
-                    });
-                }
-                Some(undistort_map(&native, dist))
-            }
-            _ => None,
-        };
+        let undistort_map = undistortion(root, &camera, &native, cfg.undistort)?;
         Ok(Self {
             root: root.to_path_buf(),
             name: folder_name(root),
