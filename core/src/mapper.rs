@@ -806,6 +806,27 @@ impl<'a, B: Backend> Mapper<'a, B> {
         {
             return Ok(0);
         }
+        let n = self.render_overlap_rays()?;
+        let n_cand = self.overlap_candidates(n);
+        // Partial Fisher-Yates: the first `take` candidates are a uniform random subset.
+        let take = want.min(n_cand);
+        self.shuffle_prefix(0, take, n_cand);
+        let take = self.draw_global_keyframes(take);
+        // Keep the chosen keyframes in cache order (oldest first).
+        self.candidates[..take].sort_unstable();
+        let mut i = 0;
+        while i < take {
+            let e = self.st.keyframes[self.candidates[i] as usize];
+            self.add_to_window(e);
+            i += 1;
+        }
+        self.win_kf = take;
+        Ok(n_cand as u32)
+    }
+
+    /// Renders `overlap_pixels` random pixels of the newest frame into `overlap_out` and
+    /// returns their number.
+    fn render_overlap_rays(&mut self) -> Result<usize, MapperError<B::Error>> {
         let cur = self.st.local[self.st.local.len() - 1].pose;
         let k = self.k;
         let n = self.cfg.overlap_pixels as usize;
@@ -825,90 +846,96 @@ impl<'a, B: Backend> Mapper<'a, B> {
         self.backend
             .render(&self.overlap_rays[..n], &mut self.overlap_out[..n])
             .map_err(MapperError::Backend)?;
-        let np = self.cfg.overlap_points as usize;
-        let margin = self.cfg.overlap_margin;
-        let (w, h) = (k.width as f32, k.height as f32);
+        Ok(n)
+    }
+
+    /// Writes the cache indices of the keyframes that see any back-projected point of the
+    /// first `n` overlap rays into `candidates` (cache order) and returns their number.
+    fn overlap_candidates(&mut self, n: usize) -> usize {
         let mut n_cand = 0usize;
         let mut f = 0;
         while f < self.st.keyframes.len() {
-            let kf = self.st.keyframes[f].pose;
-            let mut inside = 0u32;
-            let mut r = 0;
-            while r < n {
-                let out = self.overlap_out[r];
-                if out.opacity > 0.0 && out.depth > 0.0 {
-                    let d = out.depth;
-                    let ray = &self.overlap_rays[r];
-                    let (t0, t1) = (0.8 * d, d + 0.5);
-                    let mut s = 0;
-                    while s < np {
-                        let t = t0 + (t1 - t0) * s as f32 / (np - 1) as f32;
-                        let p = [
-                            ray.origin[0] + t * ray.dir[0],
-                            ray.origin[1] + t * ray.dir[1],
-                            ray.origin[2] + t * ray.dir[2],
-                        ];
-                        let (pu, pv, z) = k.project(kf.inverse_transform(p));
-                        if z > 0.0
-                            && pu > margin
-                            && pu < w - 1.0 - margin
-                            && pv > margin
-                            && pv < h - 1.0 - margin
-                        {
-                            inside += 1;
-                        }
-                        s += 1;
-                    }
-                }
-                r += 1;
-            }
-            if inside > 0 {
+            if self.overlap_points_inside(self.st.keyframes[f].pose, n) > 0 {
                 self.candidates[n_cand] = f as u16;
                 n_cand += 1;
             }
             f += 1;
         }
-        // Partial Fisher-Yates: the first `take` candidates are a uniform random subset.
-        let take = want.min(n_cand);
-        let mut i = 0;
-        while i < take {
-            let j = i + self.rng.below((n_cand - i) as u32) as usize;
+        n_cand
+    }
+
+    /// How many of the overlap test's points (`overlap_points` per rendered ray with positive
+    /// opacity and depth `D`, evenly on `[0.8 D, D + 0.5 m]`) project inside keyframe `kf`
+    /// (in front of it, more than `overlap_margin` px from its border).
+    fn overlap_points_inside(&self, kf: Pose, n: usize) -> u32 {
+        let k = self.k;
+        let np = self.cfg.overlap_points as usize;
+        let margin = self.cfg.overlap_margin;
+        let (w, h) = (k.width as f32, k.height as f32);
+        let mut inside = 0u32;
+        let mut r = 0;
+        while r < n {
+            let out = self.overlap_out[r];
+            if out.opacity > 0.0 && out.depth > 0.0 {
+                let d = out.depth;
+                let ray = &self.overlap_rays[r];
+                let (t0, t1) = (0.8 * d, d + 0.5);
+                let mut s = 0;
+                while s < np {
+                    let t = t0 + (t1 - t0) * s as f32 / (np - 1) as f32;
+                    let p = [
+                        ray.origin[0] + t * ray.dir[0],
+                        ray.origin[1] + t * ray.dir[1],
+                        ray.origin[2] + t * ray.dir[2],
+                    ];
+                    let (pu, pv, z) = k.project(kf.inverse_transform(p));
+                    if z > 0.0
+                        && pu > margin
+                        && pu < w - 1.0 - margin
+                        && pv > margin
+                        && pv < h - 1.0 - margin
+                    {
+                        inside += 1;
+                    }
+                    s += 1;
+                }
+            }
+            r += 1;
+        }
+        inside
+    }
+
+    /// Partial Fisher-Yates over `candidates[from..len]`: afterwards `candidates[from..to]`
+    /// is a uniform random subset of it.
+    fn shuffle_prefix(&mut self, from: usize, to: usize, len: usize) {
+        let mut i = from;
+        while i < to {
+            let j = i + self.rng.below((len - i) as u32) as usize;
             self.candidates.swap(i, j);
             i += 1;
         }
-        // Global keyframes: drawn uniformly from every other keyframe of the cache.
-        let mut take = take;
+    }
+
+    /// Appends up to `global_keyframes` keyframes drawn uniformly from the cache entries not
+    /// among `candidates[..take]` and returns the new count.
+    fn draw_global_keyframes(&mut self, take: usize) -> usize {
         let global = self.cfg.global_keyframes as usize;
-        if global > 0 && take < self.st.keyframes.len() {
-            // the cache indices not chosen yet, after the chosen ones
-            let mut m = take;
-            let mut f = 0;
-            while f < self.st.keyframes.len() {
-                if !self.candidates[..take].contains(&(f as u16)) {
-                    self.candidates[m] = f as u16;
-                    m += 1;
-                }
-                f += 1;
-            }
-            let extra = global.min(m - take);
-            let mut i = take;
-            while i < take + extra {
-                let j = i + self.rng.below((m - i) as u32) as usize;
-                self.candidates.swap(i, j);
-                i += 1;
-            }
-            take += extra;
+        if global == 0 || take >= self.st.keyframes.len() {
+            return take;
         }
-        // Keep the chosen keyframes in cache order (oldest first).
-        self.candidates[..take].sort_unstable();
-        let mut i = 0;
-        while i < take {
-            let e = self.st.keyframes[self.candidates[i] as usize];
-            self.add_to_window(e);
-            i += 1;
+        // the cache indices not chosen yet, after the chosen ones
+        let mut m = take;
+        let mut f = 0;
+        while f < self.st.keyframes.len() {
+            if !self.candidates[..take].contains(&(f as u16)) {
+                self.candidates[m] = f as u16;
+                m += 1;
+            }
+            f += 1;
         }
-        self.win_kf = take;
-        Ok(n_cand as u32)
+        let extra = global.min(m - take);
+        self.shuffle_prefix(take, take + extra, m);
+        take + extra
     }
 
     fn sample_pixels(&mut self, kind: UpdateKind) {

@@ -202,6 +202,54 @@ fn contiguous(
         .collect()
 }
 
+/// The sequence's camera (the configuration's, else `cam_params.json`'s, else Replica's), its
+/// depth scale when known, and the path of `cam_params.json` (for errors).
+fn camera_and_depth_scale(
+    root: &Path,
+    cfg: &DatasetConfig,
+) -> Result<(Intrinsics, Option<f32>, PathBuf), DatasetError> {
+    let params_path = root.join("cam_params.json");
+    let params = if params_path.is_file() {
+        Some(parse_cam_params(&read_text(&params_path)?, &params_path)?)
+    } else {
+        None
+    };
+    let (native, camera_source) = if let Some(c) = &cfg.camera {
+        (c.intrinsics(), root.to_path_buf())
+    } else if let Some((k, _)) = &params {
+        (*k, params_path.clone())
+    } else {
+        (CameraConfig::REPLICA.intrinsics(), root.to_path_buf())
+    };
+    check_camera(&camera_source, &native)?;
+    let depth_scale = match (cfg.depth_scale, &params) {
+        (Some(s), _) => Some(check_depth_scale(root, s)?),
+        (None, Some((_, scale))) => *scale,
+        (None, None) => Some(REPLICA_DEPTH_SCALE),
+    };
+    Ok((native, depth_scale, params_path))
+}
+
+/// The depth image of every selected frame (`depth%06d.png` in `results`), indexed by frame
+/// (empty paths for the frames not selected).
+fn depth_files(
+    depth_map: &IndexMap,
+    results: &Path,
+    n: usize,
+    selected: &[usize],
+) -> Result<Vec<PathBuf>, DatasetError> {
+    let mut depths = vec![PathBuf::new(); n];
+    for &i in selected {
+        depths[i] = depth_map
+            .get(&i)
+            .cloned()
+            .ok_or_else(|| DatasetError::Missing {
+                path: results.join(format!("depth{i:06}.png")),
+            })?;
+    }
+    Ok(depths)
+}
+
 impl ReplicaDataset {
     /// Opens the sequence in `root`; reads and validates `traj.txt` and the camera, checks that
     /// every selected image exists and that the first one has the camera's size.
@@ -224,26 +272,7 @@ impl ReplicaDataset {
             return Err(DatasetError::Missing { path: results });
         }
 
-        // Camera and depth scale.
-        let params_path = root.join("cam_params.json");
-        let params = if params_path.is_file() {
-            Some(parse_cam_params(&read_text(&params_path)?, &params_path)?)
-        } else {
-            None
-        };
-        let (native, camera_source) = if let Some(c) = &cfg.camera {
-            (c.intrinsics(), root.to_path_buf())
-        } else if let Some((k, _)) = &params {
-            (*k, params_path.clone())
-        } else {
-            (CameraConfig::REPLICA.intrinsics(), root.to_path_buf())
-        };
-        check_camera(&camera_source, &native)?;
-        let depth_scale = match (cfg.depth_scale, &params) {
-            (Some(s), _) => Some(check_depth_scale(root, s)?),
-            (None, Some((_, scale))) => *scale,
-            (None, None) => Some(REPLICA_DEPTH_SCALE),
-        };
+        let (native, depth_scale, params_path) = camera_and_depth_scale(root, cfg)?;
 
         // Files and poses.
         let (frame_map, depth_map) = list_results(&results)?;
@@ -282,16 +311,7 @@ impl ReplicaDataset {
                         .into(),
                 });
             };
-            let mut depths = vec![PathBuf::new(); n];
-            for &i in &sel.indices {
-                depths[i] = depth_map
-                    .get(&i)
-                    .cloned()
-                    .ok_or_else(|| DatasetError::Missing {
-                        path: results.join(format!("depth{i:06}.png")),
-                    })?;
-            }
-            (depths, scale)
+            (depth_files(&depth_map, &results, n, &sel.indices)?, scale)
         } else {
             (Vec::new(), depth_scale.unwrap_or(REPLICA_DEPTH_SCALE))
         };

@@ -193,168 +193,25 @@ impl House {
     /// Builds the house for `seed` (deterministic).
     pub fn generate(seed: u64) -> House {
         let mut rng = SplitMix::new(seed ^ 0x4F1B_BCDC_BFA5_3E0B);
-        let mut u = move || rng.unit();
+        let mut unit = move || rng.unit();
+        let u: &mut dyn FnMut() -> f32 = &mut unit;
         let n = 3;
         // At most 12.3 m long: the default 24 m box around the first camera holds it.
         let lengths: Vec<f32> = (0..n).map(|_| 3.5 + 0.5 * u()).collect();
         let width = 4.2 + 0.6 * u();
         let height = 2.5 + 0.2 * u();
-        let total: f32 = lengths.iter().sum::<f32>() + WALL * (n - 1) as f32;
-
-        // The walk: swing across the rooms with enough cycles for MIN_PATH_M.
         let doors: Vec<f32> = (0..n - 1)
             .map(|_| 0.5 * width + 0.8 * (u() - 0.5))
             .collect();
-        let mut path = HousePath {
-            lengths: lengths.clone(),
-            doors: doors.clone(),
-            x0: 0.7,
-            x1: total - 0.7,
-            y_center: 0.5 * width,
-            amplitude: 0.5 * width - 0.6 - 0.4 - 0.1,
-            cycles: 1.5,
-            height: 1.3 + 0.1 * u(),
-            yaw_amp: 0.75,
-            yaw_cycles: 9.0 + 2.0 * u(),
-            pitch_center: -0.2,
-            pitch_amp: 0.3,
-            pitch_cycles: 7.0 + 2.0 * u(),
-            turn: 0.06,
-        };
-        while path.length(4096) < MIN_PATH_M + 1.0 && path.cycles < 8.0 {
-            path.cycles += 0.5;
-        }
+        let path = walk(&lengths, &doors, width, u);
         let eyes: Vec<[f32; 3]> = (0..1024).map(|i| path.eye(i as f32 / 1023.0)).collect();
-
-        let textured =
-            |kind: u32, u: &mut dyn FnMut() -> f32| -> Material { super::random_material(kind, u) };
-        let mut solids = Vec::new();
-        let (x1, w, h, t) = (total, width, height, WALL);
-        // Slabs and outer walls (materials per room for the floor and walls below).
-        let plain_ceiling = textured(0, &mut u);
-        solids.push(SceneBox {
-            min: [-t, -t, h],
-            max: [x1 + t, w + t, h + t],
-            material: plain_ceiling,
-        });
-        for i in 0..n {
-            let xa = lengths[..i].iter().sum::<f32>() + t * i as f32;
-            let xb = xa + lengths[i];
-            let floor_kind = if u() < 0.5 { 1 } else { 3 };
-            solids.push(SceneBox {
-                min: [if i == 0 { -t } else { xa - t }, -t, -t],
-                max: [if i + 1 == n { xb + t } else { xb }, w + t, 0.0],
-                material: textured(floor_kind, &mut u),
-            });
-            // South and north walls of the room, one plain and one textured in a seeded order.
-            let plain_south = u() < 0.5;
-            let kinds = if plain_south {
-                [0, 1 + (u() * 3.0) as u32 % 3]
-            } else {
-                [1 + (u() * 3.0) as u32 % 3, 0]
-            };
-            solids.push(SceneBox {
-                min: [xa, -t, 0.0],
-                max: [xb, 0.0, h],
-                material: textured(kinds[0], &mut u),
-            });
-            solids.push(SceneBox {
-                min: [xa, w, 0.0],
-                max: [xb, w + t, h],
-                material: textured(kinds[1], &mut u),
-            });
-            if i == 0 {
-                solids.push(SceneBox {
-                    min: [-t, -t, 0.0],
-                    max: [0.0, w + t, h],
-                    material: textured(1 + (u() * 3.0) as u32 % 3, &mut u),
-                });
-            }
-            let wall_mat = textured(1 + (u() * 3.0) as u32 % 3, &mut u);
-            if i + 1 == n {
-                solids.push(SceneBox {
-                    min: [xb, -t, 0.0],
-                    max: [xb + t, w + t, h],
-                    material: wall_mat,
-                });
-            } else {
-                // The wall to the next room with a door where the walk crosses it.
-                let yd = doors[i];
-                let (y0, y1) = (yd - 0.5 * DOOR_WIDTH, yd + 0.5 * DOOR_WIDTH);
-                for (min, max) in [
-                    ([xb, 0.0, 0.0], [xb + t, y0, h]),
-                    ([xb, y1, 0.0], [xb + t, w, h]),
-                    ([xb, y0, DOOR_HEIGHT], [xb + t, y1, h]),
-                ] {
-                    solids.push(SceneBox {
-                        min,
-                        max,
-                        material: wall_mat.clone(),
-                    });
-                }
-            }
-        }
+        let mut solids = shell(&lengths, &doors, width, height, u);
         let structure = solids.len();
-
-        // Furniture: 2 or 3 boxes and 0 to 2 spheres per room, clear of the walk and apart.
         let mut spheres: Vec<Sphere> = Vec::new();
         for i in 0..n {
-            let xa = lengths[..i].iter().sum::<f32>() + t * i as f32;
-            let xb = xa + lengths[i];
-            let want_boxes = 2 + ((u() * 2.0) as usize).min(1);
-            let want_spheres = ((u() * 3.0) as usize).min(2);
-            let (mut nb, mut ns, mut tries) = (0, 0, 0);
-            while nb < want_boxes && tries < 4000 {
-                tries += 1;
-                let hx = 0.2 + 0.4 * u();
-                let hy = 0.2 + 0.4 * u();
-                let hz = 0.35 + 0.6 * u();
-                // Half the boxes stand against the south or north wall.
-                let cx = xa + 0.05 + hx + (lengths[i] - 0.1 - 2.0 * hx) * u();
-                let cy = match (u() * 3.0) as u32 {
-                    0 => hy,
-                    1 => w - hy,
-                    _ => 0.05 + hy + (w - 0.1 - 2.0 * hy) * u(),
-                };
-                let b = SceneBox {
-                    min: [cx - hx, cy - hy, 0.0],
-                    max: [cx + hx, cy + hy, hz],
-                    material: Material::Plain { color: [0.0; 3] },
-                };
-                let clear = eyes.iter().all(|&e| box_sdf(e, &b) >= CAMERA_CLEARANCE);
-                let apart = solids[structure..].iter().all(|o: &SceneBox| {
-                    let gx = (o.min[0] - b.max[0]).max(b.min[0] - o.max[0]);
-                    let gy = (o.min[1] - b.max[1]).max(b.min[1] - o.max[1]);
-                    gx.max(gy) >= 0.15
-                });
-                if clear && apart && b.min[0] > xa && b.max[0] < xb {
-                    let kind = ((u() * 4.0) as u32).min(3);
-                    solids.push(SceneBox {
-                        material: textured(kind, &mut u),
-                        ..b
-                    });
-                    nb += 1;
-                }
-            }
-            tries = 0;
-            while ns < want_spheres && tries < 4000 {
-                tries += 1;
-                let r = 0.15 + 0.2 * u();
-                let c = [
-                    xa + 0.1 + r + (lengths[i] - 0.2 - 2.0 * r) * u(),
-                    0.1 + r + (w - 0.2 - 2.0 * r) * u(),
-                    r + (1.4 - r) * u(),
-                ];
-                if super::sphere_fits(c, r, &eyes, solids[structure..].iter(), &spheres) {
-                    let kind = [0, 1, 3][((u() * 3.0) as usize).min(2)];
-                    spheres.push(Sphere {
-                        center: c,
-                        radius: r,
-                        material: textured(kind, &mut u),
-                    });
-                    ns += 1;
-                }
-            }
+            let xa = lengths[..i].iter().sum::<f32>() + WALL * i as f32;
+            let room = (xa, lengths[i], width);
+            furnish_room(room, &eyes, structure, &mut solids, &mut spheres, u);
         }
         let light_dir = normalize([0.3 + 0.2 * u(), 0.2 + 0.2 * u(), 1.0]);
         House {
@@ -543,6 +400,181 @@ pub fn write_house(out: &Path, opts: &HouseOptions) -> anyhow::Result<HouseSumma
         poses,
         path_m,
     })
+}
+
+/// The walk: swings across the rooms through the doors, with enough cycles for
+/// `MIN_PATH_M`.
+fn walk(lengths: &[f32], doors: &[f32], width: f32, u: &mut dyn FnMut() -> f32) -> HousePath {
+    let n = lengths.len();
+    let total: f32 = lengths.iter().sum::<f32>() + WALL * (n - 1) as f32;
+    let mut path = HousePath {
+        lengths: lengths.to_vec(),
+        doors: doors.to_vec(),
+        x0: 0.7,
+        x1: total - 0.7,
+        y_center: 0.5 * width,
+        amplitude: 0.5 * width - 0.6 - 0.4 - 0.1,
+        cycles: 1.5,
+        height: 1.3 + 0.1 * u(),
+        yaw_amp: 0.75,
+        yaw_cycles: 9.0 + 2.0 * u(),
+        pitch_center: -0.2,
+        pitch_amp: 0.3,
+        pitch_cycles: 7.0 + 2.0 * u(),
+        turn: 0.06,
+    };
+    while path.length(4096) < MIN_PATH_M + 1.0 && path.cycles < 8.0 {
+        path.cycles += 0.5;
+    }
+    path
+}
+
+/// The structure: ceiling, each room's floor, south and north walls (one plain and one
+/// textured in a seeded order), the west end wall, and the walls between rooms with their
+/// doors.
+fn shell(
+    lengths: &[f32],
+    doors: &[f32],
+    w: f32,
+    h: f32,
+    u: &mut dyn FnMut() -> f32,
+) -> Vec<SceneBox> {
+    let n = lengths.len();
+    let t = WALL;
+    let x1: f32 = lengths.iter().sum::<f32>() + t * (n - 1) as f32;
+    let mut solids = Vec::new();
+    let plain_ceiling = super::random_material(0, u);
+    solids.push(SceneBox {
+        min: [-t, -t, h],
+        max: [x1 + t, w + t, h + t],
+        material: plain_ceiling,
+    });
+    for i in 0..n {
+        let xa = lengths[..i].iter().sum::<f32>() + t * i as f32;
+        let xb = xa + lengths[i];
+        let floor_kind = if u() < 0.5 { 1 } else { 3 };
+        solids.push(SceneBox {
+            min: [if i == 0 { -t } else { xa - t }, -t, -t],
+            max: [if i + 1 == n { xb + t } else { xb }, w + t, 0.0],
+            material: super::random_material(floor_kind, u),
+        });
+        let plain_south = u() < 0.5;
+        let kinds = if plain_south {
+            [0, 1 + (u() * 3.0) as u32 % 3]
+        } else {
+            [1 + (u() * 3.0) as u32 % 3, 0]
+        };
+        solids.push(SceneBox {
+            min: [xa, -t, 0.0],
+            max: [xb, 0.0, h],
+            material: super::random_material(kinds[0], u),
+        });
+        solids.push(SceneBox {
+            min: [xa, w, 0.0],
+            max: [xb, w + t, h],
+            material: super::random_material(kinds[1], u),
+        });
+        if i == 0 {
+            let kind = 1 + (u() * 3.0) as u32 % 3;
+            solids.push(SceneBox {
+                min: [-t, -t, 0.0],
+                max: [0.0, w + t, h],
+                material: super::random_material(kind, u),
+            });
+        }
+        let kind = 1 + (u() * 3.0) as u32 % 3;
+        let wall_mat = super::random_material(kind, u);
+        if i + 1 == n {
+            solids.push(SceneBox {
+                min: [xb, -t, 0.0],
+                max: [xb + t, w + t, h],
+                material: wall_mat,
+            });
+        } else {
+            // The wall to the next room with a door where the walk crosses it.
+            let yd = doors[i];
+            let (y0, y1) = (yd - 0.5 * DOOR_WIDTH, yd + 0.5 * DOOR_WIDTH);
+            for (min, max) in [
+                ([xb, 0.0, 0.0], [xb + t, y0, h]),
+                ([xb, y1, 0.0], [xb + t, w, h]),
+                ([xb, y0, DOOR_HEIGHT], [xb + t, y1, h]),
+            ] {
+                solids.push(SceneBox {
+                    min,
+                    max,
+                    material: wall_mat.clone(),
+                });
+            }
+        }
+    }
+    solids
+}
+
+/// Furniture of the room `(x start, length, width)`: 2 or 3 boxes and 0 to 2 spheres, clear
+/// of the walk (`eyes`) and apart from the furniture so far (`solids[structure..]`).
+fn furnish_room(
+    (xa, len, w): (f32, f32, f32),
+    eyes: &[[f32; 3]],
+    structure: usize,
+    solids: &mut Vec<SceneBox>,
+    spheres: &mut Vec<Sphere>,
+    u: &mut dyn FnMut() -> f32,
+) {
+    let xb = xa + len;
+    let want_boxes = 2 + ((u() * 2.0) as usize).min(1);
+    let want_spheres = ((u() * 3.0) as usize).min(2);
+    let (mut nb, mut tries) = (0, 0);
+    while nb < want_boxes && tries < 4000 {
+        tries += 1;
+        let hx = 0.2 + 0.4 * u();
+        let hy = 0.2 + 0.4 * u();
+        let hz = 0.35 + 0.6 * u();
+        // Half the boxes stand against the south or north wall.
+        let cx = xa + 0.05 + hx + (len - 0.1 - 2.0 * hx) * u();
+        let cy = match (u() * 3.0) as u32 {
+            0 => hy,
+            1 => w - hy,
+            _ => 0.05 + hy + (w - 0.1 - 2.0 * hy) * u(),
+        };
+        let b = SceneBox {
+            min: [cx - hx, cy - hy, 0.0],
+            max: [cx + hx, cy + hy, hz],
+            material: Material::Plain { color: [0.0; 3] },
+        };
+        let clear = eyes.iter().all(|&e| box_sdf(e, &b) >= CAMERA_CLEARANCE);
+        let apart = solids[structure..].iter().all(|o: &SceneBox| {
+            let gx = (o.min[0] - b.max[0]).max(b.min[0] - o.max[0]);
+            let gy = (o.min[1] - b.max[1]).max(b.min[1] - o.max[1]);
+            gx.max(gy) >= 0.15
+        });
+        if clear && apart && b.min[0] > xa && b.max[0] < xb {
+            let kind = ((u() * 4.0) as u32).min(3);
+            solids.push(SceneBox {
+                material: super::random_material(kind, u),
+                ..b
+            });
+            nb += 1;
+        }
+    }
+    let (mut ns, mut tries) = (0, 0);
+    while ns < want_spheres && tries < 4000 {
+        tries += 1;
+        let r = 0.15 + 0.2 * u();
+        let c = [
+            xa + 0.1 + r + (len - 0.2 - 2.0 * r) * u(),
+            0.1 + r + (w - 0.2 - 2.0 * r) * u(),
+            r + (1.4 - r) * u(),
+        ];
+        if super::sphere_fits(c, r, eyes, solids[structure..].iter(), spheres) {
+            let kind = [0, 1, 3][((u() * 3.0) as usize).min(2)];
+            spheres.push(Sphere {
+                center: c,
+                radius: r,
+                material: super::random_material(kind, u),
+            });
+            ns += 1;
+        }
+    }
 }
 
 #[cfg(test)]
