@@ -186,7 +186,7 @@ fn box_sdf(p: [f32; 3], b: &SceneBox) -> f32 {
 impl House {
     /// The interior (free space and furniture) box: x from 0 to the east wall.
     pub fn interior(&self) -> ([f32; 3], [f32; 3]) {
-        let x: f32 = self.lengths.iter().sum::<f32>() + WALL * (self.lengths.len() - 1) as f32;
+        let x = house_length(&self.lengths);
         ([0.0, 0.0, 0.0], [x, self.width, self.height])
     }
 
@@ -209,7 +209,7 @@ impl House {
         let structure = solids.len();
         let mut spheres: Vec<Sphere> = Vec::new();
         for i in 0..n {
-            let xa = lengths[..i].iter().sum::<f32>() + WALL * i as f32;
+            let xa = room_start(&lengths, i);
             let room = (xa, lengths[i], width);
             furnish_room(room, &eyes, structure, &mut solids, &mut spheres, u);
         }
@@ -402,11 +402,20 @@ pub fn write_house(out: &Path, opts: &HouseOptions) -> anyhow::Result<HouseSumma
     })
 }
 
+/// Where room `i` starts along x (the rooms before it and their walls).
+fn room_start(lengths: &[f32], i: usize) -> f32 {
+    lengths[..i].iter().sum::<f32>() + WALL * i as f32
+}
+
+/// The house's inner length along x (every room and the walls between them).
+fn house_length(lengths: &[f32]) -> f32 {
+    lengths.iter().sum::<f32>() + WALL * (lengths.len() - 1) as f32
+}
+
 /// The walk: swings across the rooms through the doors, with enough cycles for
 /// `MIN_PATH_M`.
 fn walk(lengths: &[f32], doors: &[f32], width: f32, u: &mut dyn FnMut() -> f32) -> HousePath {
-    let n = lengths.len();
-    let total: f32 = lengths.iter().sum::<f32>() + WALL * (n - 1) as f32;
+    let total = house_length(lengths);
     let mut path = HousePath {
         lengths: lengths.to_vec(),
         doors: doors.to_vec(),
@@ -441,7 +450,7 @@ fn shell(
 ) -> Vec<SceneBox> {
     let n = lengths.len();
     let t = WALL;
-    let x1: f32 = lengths.iter().sum::<f32>() + t * (n - 1) as f32;
+    let x1 = house_length(lengths);
     let mut solids = Vec::new();
     let plain_ceiling = super::random_material(0, u);
     solids.push(SceneBox {
@@ -450,7 +459,7 @@ fn shell(
         material: plain_ceiling,
     });
     for i in 0..n {
-        let xa = lengths[..i].iter().sum::<f32>() + t * i as f32;
+        let xa = room_start(lengths, i);
         let xb = xa + lengths[i];
         let floor_kind = if u() < 0.5 { 1 } else { 3 };
         solids.push(SceneBox {
