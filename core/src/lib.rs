@@ -13,28 +13,22 @@
 #![cfg_attr(not(test), no_std)]
 #![deny(unsafe_code)]
 
-pub mod adam;
-pub mod batch;
 pub mod camera;
 pub mod error;
-pub mod fixed;
+pub mod field;
 pub mod gpu_abi;
-pub mod grid;
 pub mod loss;
 /// The mapper keeps its frames in `heapless` vectors: host-side only (the shaders build the
 /// core without the feature).
 #[cfg(feature = "heapless")]
 pub mod mapper;
-pub mod mapping;
 pub mod math;
-pub mod mlp;
-pub mod model;
-pub mod render;
 pub mod rng;
-pub mod step;
-pub mod warp;
+pub mod train;
 
 pub use error::Error;
+use field::mlp;
+use train::fixed;
 
 /// An axis-aligned box in world coordinates (metres).
 #[derive(Clone, Copy, Debug, PartialEq)]

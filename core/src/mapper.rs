@@ -52,11 +52,11 @@
 //! older local frames the rest). The initialisation always spreads evenly.
 
 use crate::camera::{Intrinsics, Pose};
-use crate::mapping::{MappingLoss, PixelResult, PixelSample};
-use crate::model::{Group, Ray, RayResult};
+use crate::field::model::{Group, Ray, RayResult};
+use crate::loss::warp::{WarpConfig, MAX_WINDOW};
 use crate::rng::{hash_u32, SplitMix};
-use crate::step::{Backend, ImageStore, MapBatch};
-use crate::warp::{WarpConfig, MAX_WINDOW};
+use crate::train::backend::{Backend, ImageStore, MapBatch};
+use crate::train::pixel::{MappingLoss, PixelResult, PixelSample};
 use crate::Error;
 use heapless::Vec;
 
@@ -134,7 +134,7 @@ pub struct MapperConfig {
     /// collapsed onto the camera in newly explored space gets a plausible start (0 = off).
     pub lambda_depth_prior_online: f32,
     pub depth_prior_near: f32,
-    /// Non-finite steps: every rejected step (see [`crate::step::StepStats::rejected`]) is
+    /// Non-finite steps: every rejected step (see [`crate::train::backend::StepStats::rejected`]) is
     /// skipped and counted; after `rejected_lr_after` rejected steps in a row (0 = never)
     /// every group's learning rate is multiplied by `rejected_lr_factor` (in (0, 1]).
     pub rejected_lr_after: u32,
@@ -345,7 +345,7 @@ pub struct IterInfo {
     /// opacity < 0.5): it met no surface inside the box (a box too small there, or space not
     /// mapped yet).
     pub open_rays: f32,
-    /// The step was not finite and was not applied ([`crate::step::StepStats::rejected`]).
+    /// The step was not finite and was not applied ([`crate::train::backend::StepStats::rejected`]).
     pub rejected: bool,
 }
 
@@ -585,7 +585,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
         &self.win_ids
     }
 
-    /// Pushes a posed frame (packed RGBA8, see [`crate::mapping::pack_rgba8`]; camera-to-world
+    /// Pushes a posed frame (packed RGBA8, see [`crate::train::pixel::pack_rgba8`]; camera-to-world
     /// pose) and runs an update when the schedule says so.
     pub fn push_frame(
         &mut self,
@@ -1139,8 +1139,8 @@ pub fn view_rays(k: &Intrinsics, pose: &Pose, out: &mut [Ray]) -> Result<(), Err
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::{LossConfig, ModelConfig, ModelLayout};
-    use crate::step::StepStats;
+    use crate::field::model::{LossConfig, ModelConfig, ModelLayout};
+    use crate::train::backend::StepStats;
     use crate::Aabb;
     use std::vec;
     use std::vec::Vec;
@@ -1163,7 +1163,7 @@ mod tests {
         calls: Vec<Call>,
         /// Every step reports itself rejected; the learning rates the mapper set.
         reject: bool,
-        lr: [f32; crate::model::NUM_GROUPS],
+        lr: [f32; crate::field::model::NUM_GROUPS],
         /// Every early-termination threshold the mapper set.
         min_t: Vec<f32>,
     }
@@ -1182,7 +1182,7 @@ mod tests {
                 uploads: Vec::new(),
                 calls: Vec::new(),
                 reject: false,
-                lr: [0.01; crate::model::NUM_GROUPS],
+                lr: [0.01; crate::field::model::NUM_GROUPS],
                 min_t: Vec::new(),
             }
         }
@@ -1241,7 +1241,7 @@ mod tests {
             batch: &MapBatch<'_>,
             results: &mut [PixelResult],
         ) -> Result<StepStats, Error> {
-            crate::step::window_slots(batch, &self.store)?;
+            crate::train::backend::window_slots(batch, &self.store)?;
             self.calls.push(Call {
                 slots: batch.slots.to_vec(),
                 pixels: batch.pixels.to_vec(),
@@ -1536,7 +1536,7 @@ mod tests {
         }
         // the initialisation's 7 iterations, all rejected: two reductions (after 3 and 6)
         assert_eq!((m.rejected_steps(), m.lr_reductions(), seen), (7, 2, 7));
-        assert_eq!(m.backend().lr, [0.0025; crate::model::NUM_GROUPS]);
+        assert_eq!(m.backend().lr, [0.0025; crate::field::model::NUM_GROUPS]);
         let mut bad = cfg();
         bad.rejected_lr_factor = 0.0;
         assert!(refused(bad));

@@ -3,23 +3,25 @@
 //! integer buffers of the thread that runs the chunk (no atomics, no shared cache lines);
 //! before Adam the per-thread buffers are summed. Integer sums do not depend on order, so the
 //! parameters and gradients are bit-identical to the core's single-threaded
-//! [`himap_core::step::CpuBackend`] for any thread count. A ray's forward keeps both decoders'
+//! [`himap_core::train::reference::CpuBackend`] for any thread count. A ray's forward keeps both decoders'
 //! activations of every sample ([`StoredTape`]) so the backward does not evaluate the field
 //! again.
 
 use std::sync::{Mutex, MutexGuard};
 
-use himap_core::adam::{AdamConfig, AdamStep};
-use himap_core::batch::{run_items, BatchJob, ItemRunner, MapPixels, Rays};
-use himap_core::fixed;
-use himap_core::mapping::{PixelResult, SlotPixels};
-use himap_core::mlp::{MlpScratch, MAX_WIDTH};
-use himap_core::model::{
+use himap_core::field::mlp::{MlpScratch, MAX_WIDTH};
+use himap_core::field::model::{
     color_at, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout, Params, PerGroup, Ray,
     RayCache, RayResult, SampleScratch, StoredTape, NUM_GROUPS,
 };
-use himap_core::render::MAX_SAMPLES;
-use himap_core::step::{copy_group, write_group, Backend, ImageStore, MapBatch, StepStats};
+use himap_core::field::render::MAX_SAMPLES;
+use himap_core::train::adam::{AdamConfig, AdamStep};
+use himap_core::train::backend::{
+    copy_group, write_group, Backend, ImageStore, MapBatch, StepStats,
+};
+use himap_core::train::batch::{run_items, BatchJob, ItemRunner, MapPixels, Rays};
+use himap_core::train::fixed;
+use himap_core::train::pixel::{PixelResult, SlotPixels};
 use rayon::prelude::*;
 
 /// Rays per parallel work item.
@@ -46,7 +48,7 @@ impl<'a, T> ChunkedOut<'a, T> {
     }
 }
 
-/// [`himap_core::adam::adam_update`] with the step's constants hoisted and the CPU's square
+/// [`himap_core::train::adam::adam_update`] with the step's constants hoisted and the CPU's square
 /// root instruction for `sqrt(v)`: the same operations in the same order, and IEEE square
 /// roots are correctly rounded like [`himap_core::math::sqrt`] (tested over 2^25 inputs), so the
 /// bits are the same.
@@ -74,7 +76,7 @@ impl AdamHw {
         }
     }
 
-    /// One parameter's update (see [`himap_core::adam::adam_update`]).
+    /// One parameter's update (see [`himap_core::train::adam::adam_update`]).
     #[inline(always)]
     pub fn update(&self, param: &mut f32, m: &mut f32, v: &mut f32, grad: f32) {
         let m_new = self.beta1 * *m + self.one_minus_beta1 * grad;
@@ -90,9 +92,9 @@ impl AdamHw {
     pub fn update_is_finite(&self, param: f32, m: f32, v: f32, grad: f32) -> bool {
         let (mut p, mut m, mut v) = (param, m, v);
         self.update(&mut p, &mut m, &mut v, grad);
-        himap_core::adam::is_finite(p)
-            & himap_core::adam::is_finite(m)
-            & himap_core::adam::is_finite(v)
+        himap_core::train::adam::is_finite(p)
+            & himap_core::train::adam::is_finite(m)
+            & himap_core::train::adam::is_finite(v)
     }
 
     /// Whether this step's constants allow [`Self::within_bound`] to stand in for
@@ -168,7 +170,7 @@ pub struct ModelData {
 }
 
 impl ModelData {
-    /// Each group's parameters, in [`himap_core::model::Group::ALL`] order (what
+    /// Each group's parameters, in [`himap_core::field::model::Group::ALL`] order (what
     /// `VulkanBackend::new` takes).
     pub fn param_slices(&self) -> [&[f32]; NUM_GROUPS] {
         core::array::from_fn(|g| &self.params[g][..])
@@ -213,7 +215,7 @@ impl ModelData {
     }
 
     /// Both decoders' parameters with transposed weight matrices
-    /// ([`himap_core::mlp::transpose_weights`]), for the CPU's forward.
+    /// ([`himap_core::field::mlp::transpose_weights`]), for the CPU's forward.
     pub fn transposed_mlps(&self) -> [Vec<f32>; 2] {
         let l = &self.layout;
         let (geometry, appearance) = (
@@ -222,9 +224,9 @@ impl ModelData {
         );
         let mut out = [vec![0.0; geometry.len()], vec![0.0; appearance.len()]];
         // The lengths match the layout by construction (`new`, `write_params` check them).
-        himap_core::mlp::transpose_weights(&l.geometry_mlp, geometry, &mut out[0])
+        himap_core::field::mlp::transpose_weights(&l.geometry_mlp, geometry, &mut out[0])
             .expect("geometry decoder parameters match the layout");
-        himap_core::mlp::transpose_weights(&l.appearance_mlp, appearance, &mut out[1])
+        himap_core::field::mlp::transpose_weights(&l.appearance_mlp, appearance, &mut out[1])
             .expect("appearance decoder parameters match the layout");
         out
     }
@@ -605,7 +607,7 @@ impl ParallelCpuBackend {
 
     /// Runs a batch on the pool: its items cut into chunks of [`CHUNK`] that run on whichever
     /// thread is free, each on that thread's tape and into its gradient buffers; item `i`
-    /// keeps its index as its id ([`himap_core::batch`]), so the contributions do not depend
+    /// keeps its index as its id ([`himap_core::train::batch`]), so the contributions do not depend
     /// on the schedule. Returns the batch's statistics (before Adam).
     fn run_job<J>(&self, job: &J, results: &mut [J::Output]) -> Result<StepStats, CpuError>
     where
@@ -932,7 +934,7 @@ impl Backend for ParallelCpuBackend {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use himap_core::adam::{adam_update, AdamConfig};
+    use himap_core::train::adam::{adam_update, AdamConfig};
 
     /// The branch-free conversion equals the core's for every 5th f32 bit pattern below 2048
     /// in magnitude (both signs; about 430 million values, ties and subnormals included).
@@ -1099,7 +1101,7 @@ mod tests {
     /// initialisation scale is still an error.
     #[test]
     fn parallel_init_equals_the_core_init() {
-        let config = himap_core::model::ModelConfig::paper(himap_core::Aabb {
+        let config = himap_core::field::model::ModelConfig::paper(himap_core::Aabb {
             min: [-1.0, -1.0, -0.5],
             max: [1.5, 1.0, 0.5],
         });

@@ -3,10 +3,10 @@
 
 use std::time::Instant;
 
-use himap_core::model::{LossConfig, ModelConfig, ModelLayout, Ray, RayResult};
-use himap_core::render::RenderMode;
+use himap_core::field::model::{LossConfig, ModelConfig, ModelLayout, Ray, RayResult};
+use himap_core::field::render::RenderMode;
 use himap_core::rng::SplitMix;
-use himap_core::step::{paper_adam, Backend};
+use himap_core::train::backend::{paper_adam, Backend};
 use himap_core::Aabb;
 
 use crate::backend::{ModelData, ParallelCpuBackend};

@@ -12,8 +12,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use himap_core::camera::Pose;
+use himap_core::field::model::NUM_GROUPS;
 use himap_core::mapper::{HeldFrame, MapperState};
-use himap_core::model::NUM_GROUPS;
 use serde::{Deserialize, Serialize};
 
 use crate::backend::ModelData;

@@ -24,13 +24,13 @@
 use std::path::Path;
 
 use anyhow::{bail, Context};
-use himap_core::adam::AdamConfig;
 use himap_core::camera::Pose;
-use himap_core::grid::{GridConfig, GridKind, MAX_LEVELS};
+use himap_core::field::grid::{GridConfig, GridKind, MAX_LEVELS};
+use himap_core::field::model::{ModelConfig, PerGroup};
+use himap_core::field::render::RenderMode;
+use himap_core::loss::warp::WarpConfig;
 use himap_core::mapper::{KeyframeOverflow, MapperConfig};
-use himap_core::model::{ModelConfig, PerGroup};
-use himap_core::render::RenderMode;
-use himap_core::warp::WarpConfig;
+use himap_core::train::adam::AdamConfig;
 use himap_core::Aabb;
 use serde::{Deserialize, Serialize};
 
@@ -49,7 +49,8 @@ pub struct GridSection {
 #[serde(default, deny_unknown_fields)]
 pub struct ModelSection {
     /// "factorized" (Hi-Map, TensoRF VM) or "dense" (the "no factorization" ablation).
-    pub grid_kind: String,
+    #[serde(with = "GridKindDef")]
+    pub grid_kind: GridKind,
     pub geometry: GridSection,
     pub appearance: GridSection,
     /// Hidden units per decoder layer (paper: 32).
@@ -59,7 +60,8 @@ pub struct ModelSection {
     /// Appearance decoder also sees the position (Hi-Map's dual path); false = ablation.
     pub dual_path: bool,
     /// "sdf-density" (Hi-Map), "sdf-direct" or "occupancy" (ablations).
-    pub render_mode: String,
+    #[serde(with = "RenderModeDef")]
+    pub render_mode: RenderMode,
     /// Samples per ray (not in the paper).
     pub samples: u32,
     /// Initial beta of the SDF-to-density proxy (paper: 10).
@@ -71,7 +73,7 @@ pub struct ModelSection {
     /// Geometric initialisation before mapping: "none" (random grids + `sdf_bias_init`) or
     /// "sphere" (fit the geometry to the inverted sphere of radius `geo_init_radius` around
     /// the first camera centre, see `himap::geo_init`).
-    pub geo_init: String,
+    pub geo_init: GeoInit,
     /// Radius (m) of the initial sphere.
     pub geo_init_radius: f32,
     /// Outside the sphere the target is cut at `-geo_init_solid` (m): shallow enough that a
@@ -102,6 +104,34 @@ struct WarpDef {
     w_patch: f32,
     w_center: f32,
     center_beta: f32,
+}
+
+/// `model.grid_kind`: "factorized" or "dense" (the core's [`GridKind`]).
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "GridKind", rename_all = "kebab-case")]
+enum GridKindDef {
+    Factorized,
+    Dense,
+}
+
+/// `model.render_mode`: "sdf-density", "sdf-direct" or "occupancy" (the core's
+/// [`RenderMode`]).
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "RenderMode", rename_all = "kebab-case")]
+enum RenderModeDef {
+    SdfDensity,
+    SdfDirect,
+    Occupancy,
+}
+
+/// `model.geo_init`: the geometric initialisation before mapping.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GeoInit {
+    /// Random grids and `sdf_bias_init`.
+    None,
+    /// The geometry fitted to an inverted sphere around the first camera centre.
+    Sphere,
 }
 
 /// `mapper.keyframe_overflow`: "thin" or "drop-oldest".
@@ -290,18 +320,18 @@ impl Config {
         Self {
             seed: 0,
             model: ModelSection {
-                grid_kind: "factorized".into(),
+                grid_kind: GridKind::Factorized,
                 geometry: grid_section(&GridConfig::hi_map_geometry()),
                 appearance: grid_section(&GridConfig::hi_map_appearance()),
                 hidden: 32,
                 hidden_layers: 2,
                 dual_path: true,
-                render_mode: "sdf-density".into(),
+                render_mode: RenderMode::SdfDensity,
                 samples: 48,
                 beta_init: 10.0,
                 grid_init_std: 0.01,
                 sdf_bias_init: 0.3,
-                geo_init: "none".into(),
+                geo_init: GeoInit::None,
                 geo_init_radius: 1.5,
                 geo_init_solid: 0.3,
                 max_depth: 6.0,
@@ -363,7 +393,7 @@ impl Config {
         let mut c = Self::paper();
         c.adam.mlp_lr = 1e-3;
         c.adam.beta_lr = 0.1;
-        c.model.geo_init = "sphere".into();
+        c.model.geo_init = GeoInit::Sphere;
         c.model.geometry.cell_sizes = vec![0.64, 0.32, 0.16, 0.08, 0.04];
         c.model.appearance = GridSection {
             channels: 16,
@@ -447,11 +477,6 @@ impl Config {
 
     /// Checks what the core does not check itself (names, presence of both bounds, eval).
     pub fn validate(&self) -> anyhow::Result<()> {
-        self.grid_kind()?;
-        self.render_mode()?;
-        if !["none", "sphere"].contains(&self.model.geo_init.as_str()) {
-            bail!("model.geo_init must be none or sphere");
-        }
         if !(self.model.geo_init_radius > 0.0 && self.model.geo_init_radius.is_finite()) {
             bail!("model.geo_init_radius must be positive");
         }
@@ -509,8 +534,8 @@ impl Config {
         if let Some(l) = self.eval.mesh_level {
             return l;
         }
-        match self.render_mode() {
-            Ok(RenderMode::SdfDensity) => {
+        match self.model.render_mode {
+            RenderMode::SdfDensity => {
                 let r = beta / std::f32::consts::LN_2;
                 if beta.is_finite() && r > 2.0 {
                     (r - 1.0).ln() / beta
@@ -522,23 +547,11 @@ impl Config {
         }
     }
 
-    pub fn grid_kind(&self) -> anyhow::Result<GridKind> {
-        Ok(match self.model.grid_kind.as_str() {
-            "factorized" => GridKind::Factorized,
-            "dense" => GridKind::Dense,
-            o => bail!("model.grid_kind '{o}': use factorized or dense"),
-        })
-    }
-
-    pub fn render_mode(&self) -> anyhow::Result<RenderMode> {
-        parse_render_mode(&self.model.render_mode)
-    }
-
     fn grid(&self, g: &GridSection) -> anyhow::Result<GridConfig> {
         let mut cell_sizes = [0.0; MAX_LEVELS];
         cell_sizes[..g.cell_sizes.len()].copy_from_slice(&g.cell_sizes);
         Ok(GridConfig {
-            kind: self.grid_kind()?,
+            kind: self.model.grid_kind,
             levels: g.cell_sizes.len() as u32,
             channels: g.channels,
             cell_sizes,
@@ -556,7 +569,7 @@ impl Config {
             hidden: m.hidden,
             hidden_layers: m.hidden_layers,
             dual_path: m.dual_path,
-            render_mode: self.render_mode()?,
+            render_mode: self.model.render_mode,
             samples: m.samples,
             beta_init: m.beta_init,
             grid_init_std: m.grid_init_std,
@@ -643,16 +656,6 @@ impl Config {
     }
 }
 
-/// "sdf-density", "sdf-direct" or "occupancy".
-pub fn parse_render_mode(s: &str) -> anyhow::Result<RenderMode> {
-    Ok(match s {
-        "sdf-density" => RenderMode::SdfDensity,
-        "sdf-direct" => RenderMode::SdfDirect,
-        "occupancy" => RenderMode::Occupancy,
-        other => bail!("unknown rendering '{other}': use sdf-density, sdf-direct or occupancy"),
-    })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -664,7 +667,7 @@ mod tests {
             assert_eq!(back, c);
             let aabb = Aabb::new([-1.0; 3], [1.0; 3]);
             let mc = c.model_config(aabb).unwrap();
-            himap_core::model::ModelLayout::new(&mc).unwrap();
+            himap_core::field::model::ModelLayout::new(&mc).unwrap();
             c.mapper_config().unwrap();
         }
         let p = Config::paper()
@@ -740,7 +743,7 @@ mod tests {
         let c = Config::from_toml("[mapper]\niters = 3\n[model]\nrender_mode = \"occupancy\"\n")
             .unwrap();
         assert_eq!(c.mapper.iters, 3);
-        assert_eq!(c.render_mode().unwrap(), RenderMode::Occupancy);
+        assert_eq!(c.model.render_mode, RenderMode::Occupancy);
         assert_eq!(c.mapper.pixels, Config::small().mapper.pixels);
         let e = Config::from_toml("[model]\nrender_mode = \"nerf\"\n").unwrap_err();
         assert!(format!("{e:#}").contains("nerf"), "{e:#}");

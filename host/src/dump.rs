@@ -8,13 +8,14 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use anyhow::Context;
-use himap_core::grid::{GridConfig, GridKind, GridLayout, MAX_LEVELS};
-use himap_core::model::{
+use himap_core::field::grid::{GridConfig, GridKind, GridLayout, MAX_LEVELS};
+use himap_core::field::model::{
     Group, LossConfig, ModelConfig, ModelLayout, Ray, RayCache, RayResult, SampleScratch,
 };
-use himap_core::render::RenderMode;
+use himap_core::field::render::RenderMode;
 use himap_core::rng::SplitMix;
-use himap_core::step::{Backend, CpuBackend};
+use himap_core::train::backend::Backend;
+use himap_core::train::reference::CpuBackend;
 use himap_core::Aabb;
 use safetensors::tensor::{Dtype, TensorView};
 use serde_json::json;
@@ -115,7 +116,7 @@ pub fn nonfinite_sequence<B: Backend>(
     rays: &[Ray],
     loss: &LossConfig,
     lr: f32,
-) -> Result<Vec<himap_core::step::StepStats>, B::Error> {
+) -> Result<Vec<himap_core::train::backend::StepStats>, B::Error> {
     let mut res = vec![RayResult::default(); rays.len()];
     let mut stats = vec![backend.train_step(rays, loss, &mut res)?];
     let mut poisoned = rays.to_vec();
@@ -171,8 +172,9 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
     let mut v = data.v.clone();
     let lens = layout.group_lens();
     let mut grads: [Vec<i64>; 5] = lens.map(|n| vec![0; n]);
-    let groups = himap_core::step::group_states(&mut params, &mut m, &mut v, &mut grads);
-    let mut backend = CpuBackend::new(layout, groups, himap_core::step::paper_adam())?;
+    let groups =
+        himap_core::train::reference::group_states(&mut params, &mut m, &mut v, &mut grads);
+    let mut backend = CpuBackend::new(layout, groups, himap_core::train::backend::paper_adam())?;
     let mut results = vec![RayResult::default(); rays.len()];
     let stats = backend.train_step(&rays, &loss, &mut results)?;
 
@@ -199,7 +201,7 @@ pub fn dump_step(out: &Path, opts: &DumpOptions) -> anyhow::Result<f32> {
         let gf: Vec<f32> = backend
             .grads(g)
             .iter()
-            .map(|&q| himap_core::fixed::from_fixed(q))
+            .map(|&q| himap_core::train::fixed::from_fixed(q))
             .collect();
         push_f32(&format!("grad.{}", g.name()), vec![lens[gi]], &gf);
     }
@@ -272,7 +274,7 @@ fn ray_samples(
     let mut cache = Box::new(RayCache::new());
     let mut scratch = Box::new(SampleScratch::new());
     for (i, ray) in rays.iter().enumerate() {
-        himap_core::model::ray_forward(
+        himap_core::field::model::ray_forward(
             layout,
             &view,
             ray,
@@ -308,7 +310,7 @@ fn config_json(cfg: &ModelConfig, layout: &ModelLayout, loss: &LossConfig) -> se
         "lambda_depth": loss.lambda_depth,
         "ray_scale": loss.ray_scale,
         "color_to_geometry": loss.color_to_geometry,
-        "fixed_point_frac_bits": himap_core::fixed::FRAC_BITS,
+        "fixed_point_frac_bits": himap_core::train::fixed::FRAC_BITS,
         "max_levels": MAX_LEVELS,
     })
 }

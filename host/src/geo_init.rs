@@ -12,9 +12,9 @@
 //! fitted parameters as its initial state. Adam moments of the mapping run start at zero as
 //! before.
 
-use himap_core::adam::{AdamConfig, AdamStep};
-use himap_core::model::{sdf_at, sdf_backward_taped, Group, ModelGradSink, SampleScratch};
+use himap_core::field::model::{sdf_at, sdf_backward_taped, Group, ModelGradSink, SampleScratch};
 use himap_core::rng::SplitMix;
+use himap_core::train::adam::{AdamConfig, AdamStep};
 
 use crate::backend::{AdamHw, ModelData};
 
@@ -142,7 +142,7 @@ pub fn fit_sphere(data: &mut ModelData, init: &SphereInit) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use himap_core::model::{ModelConfig, ModelLayout};
+    use himap_core::field::model::{ModelConfig, ModelLayout};
     use himap_core::Aabb;
 
     #[test]

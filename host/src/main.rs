@@ -265,8 +265,8 @@ struct DumpStepArgs {
     render: String,
 }
 
-fn parse_render(s: &str) -> anyhow::Result<himap_core::render::RenderMode> {
-    use himap_core::render::RenderMode::*;
+fn parse_render(s: &str) -> anyhow::Result<himap_core::field::render::RenderMode> {
+    use himap_core::field::render::RenderMode::*;
     Ok(match s {
         "sdf-density" => SdfDensity,
         "sdf-direct" => SdfDirect,
@@ -545,8 +545,8 @@ fn train_demo(args: TrainDemoArgs) -> anyhow::Result<()> {
         threads,
         seed,
     } = args;
-    let cfg = himap::dump::small_config(himap_core::render::RenderMode::SdfDensity);
-    let layout = himap_core::model::ModelLayout::new(&cfg)?;
+    let cfg = himap::dump::small_config(himap_core::field::render::RenderMode::SdfDensity);
+    let layout = himap_core::field::model::ModelLayout::new(&cfg)?;
     println!(
             "training a {}-parameter field on an analytic sphere-in-a-box target: {steps} steps x {rays} rays",
             layout.param_count()

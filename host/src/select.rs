@@ -10,9 +10,9 @@
 
 use std::str::FromStr;
 
-use himap_core::adam::AdamConfig;
-use himap_core::model::{Group, PerGroup};
-use himap_core::step::{Backend, ImageStore};
+use himap_core::field::model::{Group, PerGroup};
+use himap_core::train::adam::AdamConfig;
+use himap_core::train::backend::{Backend, ImageStore};
 use himap_vulkan::{DeviceKind, VulkanBackend, VulkanError};
 
 use crate::backend::{ModelData, ParallelCpuBackend};

@@ -2,9 +2,9 @@
 //! rays from a ring of viewpoints. It needs no data and prints the loss going down; it is the
 //! smallest end-to-end exercise of the field, the renderer, the losses, the gradients and Adam.
 
-use himap_core::model::{Group, LossConfig, ModelLayout, Ray, RayResult};
+use himap_core::field::model::{Group, LossConfig, ModelLayout, Ray, RayResult};
 use himap_core::rng::SplitMix;
-use himap_core::step::Backend;
+use himap_core::train::backend::Backend;
 
 use crate::backend::{ModelData, ParallelCpuBackend};
 
@@ -83,7 +83,7 @@ pub fn run(
     report_every: usize,
 ) -> anyhow::Result<(f32, f32)> {
     let data = ModelData::new(layout, seed as u32)?;
-    let mut adam = himap_core::step::paper_adam();
+    let mut adam = himap_core::train::backend::paper_adam();
     // A short run needs faster decoders than the paper's online 1e-5.
     adam[Group::GeometryMlp].lr = 1e-3;
     adam[Group::AppearanceMlp].lr = 1e-3;

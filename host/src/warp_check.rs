@@ -1,7 +1,7 @@
 //! `himap warp-check`: does the warping loss find the true depth on a dataset?
 //!
 //! Issue #11's diagnostic. For pixels with ground-truth depth, the DIM-SLAM warping loss
-//! ([`himap_core::warp::warp_pixel`], the mapper's configuration) is evaluated along the
+//! ([`himap_core::loss::warp::warp_pixel`], the mapper's configuration) is evaluated along the
 //! pixel's ray at depths `gt * s` for `s` log-spaced over `[1/2, 2]`. Where its minimum is
 //! not at the ground truth, the loss itself (patch, validity, exposure) fails and no schedule
 //! of the optimiser can recover the geometry. With a saved map, the loss at the map's rendered
@@ -16,10 +16,10 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use himap_core::camera::{Intrinsics, Pose};
-use himap_core::model::{Ray, RayResult};
+use himap_core::field::model::{Ray, RayResult};
+use himap_core::loss::warp::{warp_pixel, PackedImages, WarpConfig};
 use himap_core::rng::SplitMix;
-use himap_core::step::Backend;
-use himap_core::warp::{warp_pixel, PackedImages, WarpConfig};
+use himap_core::train::backend::Backend;
 
 use crate::backend::ParallelCpuBackend;
 use crate::config::Config;
@@ -290,7 +290,8 @@ fn load_window(
         poses.push(f.pose);
         let rgb = f.rgb.blurred(blur);
         for px in rgb.data.as_chunks::<3>().0 {
-            let q = himap_core::mapping::unpack_rgba8(himap_core::mapping::pack_rgba8(*px));
+            let q =
+                himap_core::train::pixel::unpack_rgba8(himap_core::train::pixel::pack_rgba8(*px));
             data.extend_from_slice(&q);
         }
         depths.push(f.depth.context("frame without depth")?);

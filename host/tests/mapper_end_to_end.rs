@@ -8,8 +8,8 @@ use himap::mapper_cli::{
 };
 use himap::synth::{write_synthetic, SynthOptions};
 use himap_core::mapper::Mapper;
-use himap_core::mapping::{PixelResult, PixelSample};
-use himap_core::step::ImageStore;
+use himap_core::train::backend::ImageStore;
+use himap_core::train::pixel::{PixelResult, PixelSample};
 
 fn tiny_config() -> Config {
     let mut c = himap::dump::tiny_map_config();
@@ -18,7 +18,7 @@ fn tiny_config() -> Config {
     c.mapper.lambda_depth_prior = 0.0;
     // Likewise the sphere initialisation: the count of valid warp pairs (a sum) changes as
     // the surface moves from the sphere to the walls, so the total loss is not monotone.
-    c.model.geo_init = "none".into();
+    c.model.geo_init = himap::config::GeoInit::None;
     c.eval.renders = 2;
     c
 }
@@ -403,7 +403,7 @@ fn nonfinite_steps_are_rejected_counted_and_never_saved() {
     assert_eq!(json["rejected_steps"], s.rejected_steps);
     assert_eq!(json["lr_reductions"], s.lr_reductions);
     let (_, map) = load_map(&out.join("map.safetensors")).unwrap();
-    for g in 0..himap_core::model::NUM_GROUPS {
+    for g in 0..himap_core::field::model::NUM_GROUPS {
         let mut all = map.params[g].iter().chain(&map.m[g]).chain(&map.v[g]);
         assert!(
             all.all(|x| x.is_finite()),
@@ -458,7 +458,7 @@ fn a_resumed_run_equals_the_uninterrupted_one() {
     let (_, b) = load_map(&resumed.join("map.safetensors")).unwrap();
     assert_eq!(a.t, b.t);
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-    for g in 0..himap_core::model::NUM_GROUPS {
+    for g in 0..himap_core::field::model::NUM_GROUPS {
         assert_eq!(
             bits(&a.params[g]),
             bits(&b.params[g]),

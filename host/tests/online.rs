@@ -7,8 +7,8 @@ use himap::dataset::{self, LoadOptions};
 use himap::mapper_cli::{load_map, pack_image, run_map, start_map, MapOptions};
 use himap::synth::{write_synthetic, SynthOptions};
 use himap_core::mapper::Mapper;
-use himap_core::mapping::{PixelResult, PixelSample};
-use himap_core::step::ImageStore;
+use himap_core::train::backend::ImageStore;
+use himap_core::train::pixel::{PixelResult, PixelSample};
 
 /// A tiny mapping run whose box is the default one around the first camera (the room's
 /// `scene.json` is removed, as for a real sequence without metadata).

@@ -3,8 +3,8 @@
 //! (`tests/tests/conformance.rs`).
 
 use himap::dump::small_config;
-use himap_core::model::ModelLayout;
-use himap_core::render::RenderMode;
+use himap_core::field::model::ModelLayout;
+use himap_core::field::render::RenderMode;
 
 #[test]
 fn demo_training_reduces_the_loss() {

@@ -28,21 +28,22 @@
 //! ("not implemented yet"), and `f64` without the `Float64` capability (`math::sin`/`cos`).
 #![cfg_attr(target_arch = "spirv", no_std)]
 
-use himap_core::adam;
 use himap_core::camera::{Intrinsics, Pose};
+use himap_core::field::grid::{self, MAX_GRID_FEATURES};
+use himap_core::field::mlp::{self, MlpScratch, MAX_OUT, MAX_WIDTH};
+use himap_core::field::model::{
+    self, Group, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache, SampleScratch,
+};
+use himap_core::field::render::MAX_SAMPLES;
 pub use himap_core::gpu_abi::WORKGROUP_SIZE;
 use himap_core::gpu_abi::{
     pixel_result_record, ray_result_record, words, AdamPush, KernelPush, LossCheckPush, RangePush,
     SamplePush, TrainPush, PARAM_BINDINGS, RAY_FLOATS, SAMPLE_FLOATS,
 };
-use himap_core::grid::{self, MAX_GRID_FEATURES};
-use himap_core::mapping::{self, PixelResult, PixelSample, WindowImages, WindowView};
-use himap_core::mlp::{self, MlpScratch, MAX_OUT, MAX_WIDTH};
-use himap_core::model::{
-    self, Group, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache, SampleScratch,
-};
-use himap_core::render::MAX_SAMPLES;
-use himap_core::{fixed, rng, Aabb, GradSink, ParamRead};
+use himap_core::train::adam;
+use himap_core::train::fixed;
+use himap_core::train::pixel::{self, PixelResult, PixelSample, WindowImages, WindowView};
+use himap_core::{rng, Aabb, GradSink, ParamRead};
 use spirv_std::arch::atomic_i_add;
 use spirv_std::glam::UVec3;
 use spirv_std::memory::{Scope, Semantics};
@@ -714,7 +715,7 @@ pub fn ray_render_cs(
     write_record(results, r, &ray_result_record(&res));
 }
 
-/// Pass 0 of a mapping step: the camera ray of every sampled pixel (`mapping::pixel_ray`),
+/// Pass 0 of a mapping step: the camera ray of every sampled pixel (`pixel::pixel_ray`),
 /// written as a ray record for the per-sample passes. A pixel whose frame is outside the
 /// window gets a zero ray (pass 2 ignores it).
 ///
@@ -750,7 +751,7 @@ pub fn pixel_rays_cs(
         images: &imgs,
     };
     let px = read_pixel(pixels, i);
-    let (ray, _) = mapping::pixel_ray(&window, px);
+    let (ray, _) = pixel::pixel_ray(&window, px);
     let b = i * RAY_FLOATS;
     if b + RAY_FLOATS <= rays.len() {
         rays[b] = ray.origin[0];
@@ -785,7 +786,7 @@ fn read_pixel(pixels: &[u32], i: usize) -> PixelSample {
 }
 
 /// Pass 2 of a mapping step: one pixel per invocation. Composites the pixel's ray from its
-/// sample records, takes `mapping::pixel_loss` (colour L1, DIM-SLAM warping loss through the
+/// sample records, takes `pixel::pixel_loss` (colour L1, DIM-SLAM warping loss through the
 /// rendered depth, depth prior), back-propagates through the compositing, stores the
 /// per-sample cotangents and adds the beta gradient.
 ///
@@ -841,7 +842,7 @@ pub fn pixel_train_cs(
         let mut cache = RayCache::new();
         load_ray(&layout, beta, &ray, i, pixel_samples, &mut cache);
         let (r, d_color, d_depth) =
-            mapping::pixel_loss(&window, px, &ray, &cache.out, cache.n, &loss);
+            pixel::pixel_loss(&window, px, &ray, &cache.out, cache.n, &loss);
         res = r;
         live = cache.n;
         if cache.n > 0 {

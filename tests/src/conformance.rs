@@ -1,5 +1,5 @@
 //! The backend conformance suite: every check runs a backend under test ([`Candidate`])
-//! beside the core's single-threaded reference ([`himap_core::step::CpuBackend`]) through the
+//! beside the core's single-threaded reference ([`himap_core::train::reference::CpuBackend`]) through the
 //! [`Backend`] trait only, and asserts the same bits: per-ray and per-pixel results, step
 //! statistics, fixed-point gradients, parameters and Adam moments.
 //!
@@ -10,19 +10,18 @@
 use himap::backend::ModelData;
 use himap::dump::{nonfinite_sequence, random_rays, small_config};
 use himap::synth::{synth_intrinsics, synth_pose, Scene};
-use himap_core::adam::AdamConfig;
 use himap_core::camera::{Intrinsics, Pose};
-use himap_core::gpu_abi::{pixel_result_record, ray_result_record};
-use himap_core::mapping::{pack_rgba8, MappingLoss, PixelResult, PixelSample};
-use himap_core::model::{
+use himap_core::field::model::{
     ray_forward, Group, LossConfig, ModelConfig, ModelLayout, PerGroup, Ray, RayCache, RayResult,
     SampleScratch, NUM_GROUPS,
 };
-use himap_core::render::RenderMode;
-use himap_core::step::{
-    group_states, paper_adam, Backend, CpuBackend, ImageStore, MapBatch, StepStats,
-};
-use himap_core::warp::WarpConfig;
+use himap_core::field::render::RenderMode;
+use himap_core::gpu_abi::{pixel_result_record, ray_result_record};
+use himap_core::loss::warp::WarpConfig;
+use himap_core::train::adam::AdamConfig;
+use himap_core::train::backend::{paper_adam, Backend, ImageStore, MapBatch, StepStats};
+use himap_core::train::pixel::{pack_rgba8, MappingLoss, PixelResult, PixelSample};
+use himap_core::train::reference::{group_states, CpuBackend};
 use himap_core::Aabb;
 
 /// A backend under test.

@@ -4,8 +4,8 @@
 pub mod conformance;
 
 use himap::backend::ModelData;
-use himap_core::adam::AdamConfig;
-use himap_core::model::PerGroup;
+use himap_core::field::model::PerGroup;
+use himap_core::train::adam::AdamConfig;
 use himap_vulkan::{VulkanBackend, VulkanError};
 
 /// The Vulkan backend over `data`'s parameters, or `None` (with the reason printed) when this

@@ -4,10 +4,10 @@
 
 use himap::backend::{ModelData, ParallelCpuBackend};
 use himap::dump::small_config;
-use himap_core::adam::AdamConfig;
-use himap_core::model::PerGroup;
-use himap_core::render::RenderMode;
-use himap_core::step::ImageStore;
+use himap_core::field::model::PerGroup;
+use himap_core::field::render::RenderMode;
+use himap_core::train::adam::AdamConfig;
+use himap_core::train::backend::ImageStore;
 use himap_tests::conformance::{self, Candidate};
 use himap_vulkan::VulkanBackend;
 

@@ -87,7 +87,7 @@ fn a_lost_device_mid_run_resumes_on_the_cpu_with_the_same_bits() {
     let (_, b) = load_map(&dir.path().join("resumed/map.safetensors")).unwrap();
     assert_eq!(a.t, b.t);
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-    for g in 0..himap_core::model::NUM_GROUPS {
+    for g in 0..himap_core::field::model::NUM_GROUPS {
         assert_eq!(bits(&a.params[g]), bits(&b.params[g]), "group {g}");
         assert_eq!(bits(&a.m[g]), bits(&b.m[g]), "group {g}");
         assert_eq!(bits(&a.v[g]), bits(&b.v[g]), "group {g}");

@@ -5,9 +5,9 @@
 
 use himap::backend::ParallelCpuBackend;
 use himap::dump::random_rays;
-use himap_core::model::{Group, RayResult};
-use himap_core::render::RenderMode;
-use himap_core::step::{paper_adam, Backend, ImageStore};
+use himap_core::field::model::{Group, RayResult};
+use himap_core::field::render::RenderMode;
+use himap_core::train::backend::{paper_adam, Backend, ImageStore};
 use himap_tests::conformance::{
     assert_same_f32, loss_config, result_floats, same, setup, test_adam, Reference,
 };

@@ -1,5 +1,5 @@
 //! [`VulkanBackend`]: the core's [`Backend`] on a Vulkan device, bit-identical to
-//! `himap_core::step::CpuBackend`.
+//! `himap_core::train::reference::CpuBackend`.
 //!
 //! Parameters, Adam moments and fixed-point gradients of the five groups live in persistent
 //! device buffers (uploaded once at construction, read back only on request); so do the image
@@ -40,18 +40,20 @@ use crate::error::VulkanError;
 use crate::passes::{dispatch_items, push_bytes, range_push, Passes, Pipelines};
 use crate::raw::{Buffer, Gpu, Memory, PhysicalInfo, ShaderModule};
 use crate::words;
-use himap_core::adam::{AdamConfig, AdamStep};
 use himap_core::error::check_len;
+use himap_core::field::model::{
+    Group, LossConfig, ModelLayout, PerGroup, Ray, RayResult, NUM_GROUPS,
+};
+use himap_core::field::render::MAX_SAMPLES;
 use himap_core::gpu_abi::{
     pixel_result_from_record, ray_result_from_record, TrainPush, PIXEL_RESULT_FLOATS,
     PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS, SAMPLE_FLOATS,
 };
-use himap_core::mapping::PixelResult;
-use himap_core::model::{Group, LossConfig, ModelLayout, PerGroup, Ray, RayResult, NUM_GROUPS};
-use himap_core::render::MAX_SAMPLES;
-use himap_core::step::{
+use himap_core::train::adam::{AdamConfig, AdamStep};
+use himap_core::train::backend::{
     summarize, summarize_pixels, window_slots, Backend, ImageStore, MapBatch, StepStats,
 };
+use himap_core::train::pixel::PixelResult;
 
 /// Construction options of [`VulkanBackend`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

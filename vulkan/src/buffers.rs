@@ -7,8 +7,8 @@ use std::sync::Arc;
 
 use crate::error::VulkanError;
 use crate::raw::{Buffer, Device, Gpu, Memory};
+use himap_core::field::model::{Group, PerGroup};
 use himap_core::gpu_abi::PARAM_BINDINGS;
-use himap_core::model::{Group, PerGroup};
 
 /// One part of a group: parameters `start..start + len` with their Adam moments and
 /// fixed-point gradient.

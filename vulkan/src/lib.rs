@@ -1,4 +1,4 @@
-//! Vulkan backend for himap: [`VulkanBackend`] implements `himap_core::step::Backend` with
+//! Vulkan backend for himap: [`VulkanBackend`] implements `himap_core::train::backend::Backend` with
 //! rust-gpu compute shaders that give the CPU core's bits.
 //!
 //! - [`list_devices`] / [`describe_devices`]: the devices, their limits and features

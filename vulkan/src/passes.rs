@@ -9,9 +9,9 @@ use crate::buffers::{grad_bindings, param_bindings, GroupBuffers};
 use crate::error::VulkanError;
 use crate::raw::{Buffer, Device, Pipeline, Recorder, Set, ShaderModule};
 use crate::{entry, WORKGROUP_SIZE};
-use himap_core::adam::AdamStep;
+use himap_core::field::model::{Group, PerGroup, NUM_GROUPS};
 use himap_core::gpu_abi::{AdamPush, LossCheckPush, PushWords, RangePush, SamplePush};
-use himap_core::model::{Group, PerGroup, NUM_GROUPS};
+use himap_core::train::adam::AdamStep;
 
 pub(crate) struct Pipelines {
     pub(crate) sample_forward: Pipeline,

@@ -18,17 +18,17 @@ use core::mem::size_of;
 /// Invocations per workgroup of every entry point (x only).
 pub const WORKGROUP_SIZE: u32 = 64;
 
-/// Floats of one [`crate::model::Ray`] in a rays buffer: origin (3), dir (3), target (3),
+/// Floats of one [`crate::field::model::Ray`] in a rays buffer: origin (3), dir (3), target (3),
 /// target_depth.
 pub const RAY_FLOATS: usize = 10;
-/// Floats of one [`crate::model::RayResult`] in a results buffer: colour (3), depth, opacity,
+/// Floats of one [`crate::field::model::RayResult`] in a results buffer: colour (3), depth, opacity,
 /// loss.
 pub const RESULT_FLOATS: usize = 6;
 /// Floats of one sample record: `t`, `sdf`, `rgb` (3) written by the per-sample forward pass,
 /// then `d_sdf`, `d_rgb` (3) written by the composite passes. Sample `k` of ray `r` is record
 /// `r * S + k`, with `S = layout.config.samples`.
 pub const SAMPLE_FLOATS: usize = 9;
-/// Floats of one [`crate::mapping::PixelResult`] in a results buffer: colour (3), depth,
+/// Floats of one [`crate::train::pixel::PixelResult`] in a results buffer: colour (3), depth,
 /// opacity, colour loss, warp loss, valid views (as f32, exact).
 pub const PIXEL_RESULT_FLOATS: usize = 8;
 /// The parameter bindings of the entry points that read the field (after binding 0, the model
@@ -41,17 +41,17 @@ pub const RESULT_LOSS: (usize, usize) = (5, 5);
 /// Offsets of the colour and warp loss fields in a [`PIXEL_RESULT_FLOATS`] record.
 pub const PIXEL_RESULT_LOSSES: (usize, usize) = (5, 6);
 
-/// A [`crate::model::RayResult`] as its record in a results buffer ([`RESULT_FLOATS`]).
+/// A [`crate::field::model::RayResult`] as its record in a results buffer ([`RESULT_FLOATS`]).
 #[inline(always)]
-pub fn ray_result_record(r: &crate::model::RayResult) -> [f32; RESULT_FLOATS] {
+pub fn ray_result_record(r: &crate::field::model::RayResult) -> [f32; RESULT_FLOATS] {
     [
         r.color[0], r.color[1], r.color[2], r.depth, r.opacity, r.loss,
     ]
 }
 
-/// The [`crate::model::RayResult`] of a record written by [`ray_result_record`].
-pub fn ray_result_from_record(v: &[f32; RESULT_FLOATS]) -> crate::model::RayResult {
-    crate::model::RayResult {
+/// The [`crate::field::model::RayResult`] of a record written by [`ray_result_record`].
+pub fn ray_result_from_record(v: &[f32; RESULT_FLOATS]) -> crate::field::model::RayResult {
+    crate::field::model::RayResult {
         color: [v[0], v[1], v[2]],
         depth: v[3],
         opacity: v[4],
@@ -59,10 +59,10 @@ pub fn ray_result_from_record(v: &[f32; RESULT_FLOATS]) -> crate::model::RayResu
     }
 }
 
-/// A [`crate::mapping::PixelResult`] as its record in a results buffer
+/// A [`crate::train::pixel::PixelResult`] as its record in a results buffer
 /// ([`PIXEL_RESULT_FLOATS`]; the valid-view count as an f32, exact).
 #[inline(always)]
-pub fn pixel_result_record(r: &crate::mapping::PixelResult) -> [f32; PIXEL_RESULT_FLOATS] {
+pub fn pixel_result_record(r: &crate::train::pixel::PixelResult) -> [f32; PIXEL_RESULT_FLOATS] {
     [
         r.color[0],
         r.color[1],
@@ -75,9 +75,11 @@ pub fn pixel_result_record(r: &crate::mapping::PixelResult) -> [f32; PIXEL_RESUL
     ]
 }
 
-/// The [`crate::mapping::PixelResult`] of a record written by [`pixel_result_record`].
-pub fn pixel_result_from_record(v: &[f32; PIXEL_RESULT_FLOATS]) -> crate::mapping::PixelResult {
-    crate::mapping::PixelResult {
+/// The [`crate::train::pixel::PixelResult`] of a record written by [`pixel_result_record`].
+pub fn pixel_result_from_record(
+    v: &[f32; PIXEL_RESULT_FLOATS],
+) -> crate::train::pixel::PixelResult {
+    crate::train::pixel::PixelResult {
         color: [v[0], v[1], v[2]],
         depth: v[3],
         opacity: v[4],
@@ -126,7 +128,7 @@ pub struct SamplePush {
 }
 
 /// Push constants of the ray composite-and-loss pass: the
-/// [`crate::step::LossConfig`] of the step plus the item range.
+/// [`crate::train::backend::LossConfig`] of the step plus the item range.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 #[repr(C)]
 pub struct TrainPush {
@@ -144,14 +146,14 @@ pub struct TrainPush {
 }
 
 /// Push constants of the Adam passes: the item range and the group's
-/// [`crate::adam::AdamStep`].
+/// [`crate::train::adam::AdamStep`].
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 #[repr(C)]
 pub struct AdamPush {
     /// Parameters in this dispatch; invocation `i` updates parameter `first + i`.
     pub n: u32,
     pub first: u32,
-    pub step: crate::adam::AdamStep,
+    pub step: crate::train::adam::AdamStep,
 }
 
 /// Push constants of the loss check: the item range and where a record's loss fields are.

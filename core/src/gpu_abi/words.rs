@@ -18,12 +18,12 @@
 //! | window | [`WINDOW`] = 448 | intrinsics, frames, image width, image height, slots ([`MAX_WINDOW`]), poses ([`MAX_WINDOW`] x [`POSE`]), mapping loss |
 
 use crate::camera::{Intrinsics, Pose, PoseRead};
-use crate::grid::{GridConfig, GridKind, GridLayout, LevelLayout, MAX_LEVELS};
-use crate::mapping::MappingLoss;
-use crate::mlp::{MlpLayout, MAX_HIDDEN_LAYERS};
-use crate::model::{ModelConfig, ModelLayout};
-use crate::render::RenderMode;
-use crate::warp::{WarpConfig, MAX_WINDOW};
+use crate::field::grid::{GridConfig, GridKind, GridLayout, LevelLayout, MAX_LEVELS};
+use crate::field::mlp::{MlpLayout, MAX_HIDDEN_LAYERS};
+use crate::field::model::{ModelConfig, ModelLayout};
+use crate::field::render::RenderMode;
+use crate::loss::warp::{WarpConfig, MAX_WINDOW};
+use crate::train::pixel::MappingLoss;
 use crate::Aabb;
 
 /// Words of an [`Aabb`].
@@ -469,8 +469,8 @@ impl PoseRead for WordPoses<'_> {
 #[cfg(test)]
 mod tests {
     use crate::camera::{Intrinsics, Pose};
+    use crate::field::grid::{GridConfig, GridKind, GridLayout};
     use crate::gpu_abi::words;
-    use crate::grid::{GridConfig, GridKind, GridLayout};
     use crate::Aabb;
 
     #[test]
@@ -512,16 +512,16 @@ mod tests {
         assert_eq!(w[18], 1200);
         // The whole model layout (what train/render/query shaders decode), every render mode.
         for mode in [
-            crate::render::RenderMode::SdfDensity,
-            crate::render::RenderMode::SdfDirect,
-            crate::render::RenderMode::Occupancy,
+            crate::field::render::RenderMode::SdfDensity,
+            crate::field::render::RenderMode::SdfDirect,
+            crate::field::render::RenderMode::Occupancy,
         ] {
-            let mut cfg = crate::model::ModelConfig::paper(aabb);
+            let mut cfg = crate::field::model::ModelConfig::paper(aabb);
             cfg.render_mode = mode;
-            cfg.dual_path = mode != crate::render::RenderMode::SdfDirect;
+            cfg.dual_path = mode != crate::field::render::RenderMode::SdfDirect;
             cfg.appearance_grid = cfg.appearance_grid.with_kind(GridKind::Dense);
             cfg.appearance_grid.cell_sizes[1] = 0.5;
-            let l = crate::model::ModelLayout::new(&cfg).unwrap();
+            let l = crate::field::model::ModelLayout::new(&cfg).unwrap();
             let mut w = vec![0u32; words::MODEL_LAYOUT];
             words::model_layout_to_words(&l, &mut w, 0);
             assert_eq!(words::model_layout_from_words(&w, 0), l);

@@ -19,10 +19,10 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use himap_core::camera::{Intrinsics, Pose};
+use himap_core::field::model::{Group, ModelLayout, Ray, RayResult};
 use himap_core::mapper::{view_rays, IterInfo, Mapper, MapperError, UpdateKind, UpdateReport};
-use himap_core::mapping::{pack_rgba8, PixelResult, PixelSample};
-use himap_core::model::{Group, ModelLayout, Ray, RayResult};
-use himap_core::step::{Backend, ImageStore};
+use himap_core::train::backend::{Backend, ImageStore};
+use himap_core::train::pixel::{pack_rgba8, PixelResult, PixelSample};
 use himap_core::Aabb;
 use serde::{Deserialize, Serialize};
 

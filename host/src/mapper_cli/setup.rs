@@ -45,7 +45,7 @@ pub fn initial_data(
     let layout = ModelLayout::new(&mc).map_err(|e| anyhow::anyhow!("model: {e}"))?;
     let mut data = ModelData::new(layout, config.seed as u32)
         .map_err(|e| anyhow::anyhow!("model init: {e}"))?;
-    if config.model.geo_init == "sphere" {
+    if config.model.geo_init == crate::config::GeoInit::Sphere {
         let c = center.unwrap_or_else(|| [0, 1, 2].map(|a| 0.5 * (aabb.min[a] + aabb.max[a])));
         crate::geo_init::fit_sphere(
             &mut data,

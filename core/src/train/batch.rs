@@ -1,8 +1,8 @@
 //! The batch driver of the CPU backends: what one item (a ray or a pixel) of a training step,
 //! a render or a mapping iteration runs, and the loop that drives a run of items in order.
 //!
-//! The core's reference backend ([`crate::step::CpuBackend`]) drives a whole batch as one run
-//! with the [`Recompute`](crate::model::Recompute) tape; the host's parallel backend cuts the
+//! The core's reference backend ([`crate::train::reference::CpuBackend`]) drives a whole batch as one run
+//! with the [`Recompute`](crate::field::model::Recompute) tape; the host's parallel backend cuts the
 //! batch into chunks that run on a thread pool, each with its own tape and gradient sink. In
 //! both, item `i` of the batch keeps `i` as its id (the stratified jitter and the warping
 //! loss's pixel id), so the contributions do not depend on how the batch is cut: the
@@ -12,15 +12,15 @@
 //! [`pixel_train`]) as per-sample passes; its driver is the Vulkan backend's own.
 
 use crate::camera::{Pose, PoseRead};
-use crate::mapping::{
-    pixel_train, MappingLoss, PixelResult, PixelSample, SlotPixels, WindowImages, WindowView,
-};
-use crate::model::{
+use crate::field::model::{
     ray_forward_taped, ray_train, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
     RayResult, SampleScratch, SampleTape,
 };
-use crate::step::{summarize, summarize_pixels, MapBatch, StepStats};
-use crate::warp::FrameImages;
+use crate::loss::warp::FrameImages;
+use crate::train::backend::{summarize, summarize_pixels, MapBatch, StepStats};
+use crate::train::pixel::{
+    pixel_train, MappingLoss, PixelResult, PixelSample, SlotPixels, WindowImages, WindowView,
+};
 use crate::ParamRead;
 
 /// What one thread needs to run items: the model, its parameters, the ray cache and scratch,

@@ -4,7 +4,7 @@
 //! # The loss
 //!
 //! For a source pixel `p = (u, v)` (integer, a pixel centre) of window frame `i = src` with
-//! rendered centre depth `D` (camera z-depth, [`crate::render`]):
+//! rendered centre depth `D` (camera z-depth, [`crate::field::render`]):
 //!
 //! 1. **Patch points.** For offsets `δ ∈ [-h, h]^2` (`h = half`, 5 gives 11x11) the 3-D points
 //!    `X(δ) = T_i (D · K^-1 (p + δ))` with `K^-1 (u, v) = ((u - cx)/fx, (v - cy)/fy, 1)`

@@ -1,5 +1,6 @@
 //! Losses with hand-written gradients: L1 colour, smooth L1 (Huber), and the single-window
-//! patch SSIM of DIM-SLAM's warping loss.
+//! patch SSIM of DIM-SLAM's warping loss; [`warp`] is the warping loss itself (patches of one
+//! pixel warped through its rendered depth into the other window frames).
 //!
 //! # SSIM
 //!
@@ -26,6 +27,8 @@
 //! with `dmu_a/da_k = w_k`, `dvar_a/da_k = 2 w_k (a_k - mu_a)`, `dcov/da_k = w_k (b_k - mu_b)`:
 //! `dS/da_k = w_k (2 mu_b dA1 + 2 mu_a dB1 + 2 (a_k - mu_a) dB2 + 2 (b_k - mu_b) dA2)`
 //! (symmetric for `b`). `B1 >= C1 > 0` and `B2 >= C2 > 0`, so nothing divides by zero.
+
+pub mod warp;
 
 use crate::math;
 

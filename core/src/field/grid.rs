@@ -816,14 +816,14 @@ pub fn grid_backward_rows<S: GradSink>(
     sink: &mut S,
 ) {
     let (nl, nc) = kernel_dims(layout);
-    if layout.kind == GridKind::Dense || nc > crate::mlp::MAX_WIDTH {
+    if layout.kind == GridKind::Dense || nc > crate::field::mlp::MAX_WIDTH {
         grid_backward(layout, params, p, d_feat, sink);
         return;
     }
     let (xn, _) = normalize_with_mask(&layout.aabb, p);
     // Per channel: g * (the other factor) of every term: lines x, y, z; planes xy, xz, yz
     // (entries [..nc] are rewritten at every level).
-    let mut gl = [[0.0f32; crate::mlp::MAX_WIDTH]; 6];
+    let mut gl = [[0.0f32; crate::field::mlp::MAX_WIDTH]; 6];
     let mut l = 0;
     while l < nl {
         let lv = &layout.level[l];
@@ -862,7 +862,7 @@ pub fn grid_backward_rows<S: GradSink>(
 fn plane_rows_backward<S: GradSink>(
     sink: &mut S,
     p: [usize; 4],
-    gm: &[f32; crate::mlp::MAX_WIDTH],
+    gm: &[f32; crate::field::mlp::MAX_WIDTH],
     nc: usize,
     fa: f32,
     fb: f32,
@@ -910,7 +910,7 @@ mod tests {
             &mut self,
             offset: usize,
             _g: f32,
-            _xs: &[f32; crate::mlp::MAX_WIDTH],
+            _xs: &[f32; crate::field::mlp::MAX_WIDTH],
             _n: usize,
         ) {
             self.0.push(offset);

@@ -43,7 +43,7 @@ impl AdamConfig {
         }
     }
 
-    /// Changes the learning rate ([`crate::step::Backend::set_adam_lr`] of every backend):
+    /// Changes the learning rate ([`crate::train::backend::Backend::set_adam_lr`] of every backend):
     /// it must be finite and `>= 0`; the moments are not touched.
     pub fn set_lr(&mut self, lr: f32) -> Result<(), crate::Error> {
         if !(lr.is_finite() && lr >= 0.0) {

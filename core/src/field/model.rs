@@ -1,6 +1,6 @@
 //! The Hi-Map field: two feature grids, two decoders and the renderer, evaluated per sample and
 //! per ray, forward and backward. This is the per-ray kernel that every backend runs: the
-//! single-threaded CPU step in [`crate::step`], the host's multi-threaded backend and the
+//! single-threaded CPU step in [`crate::train::backend`], the host's multi-threaded backend and the
 //! Vulkan shaders all call [`ray_forward`] and [`ray_train`].
 //!
 //! Per sample at world position p (grid coordinates p̂ = `Aabb::normalize(p)` in [-1, 1]):
@@ -11,10 +11,10 @@
 //! Parameters live in five groups ([`Group`]), each a flat `f32` buffer described by the
 //! layouts in [`ModelLayout`]. Gradients go to a [`ModelGradSink`], one call per contribution.
 
-use crate::grid::{self, GridConfig, GridLayout, MAX_GRID_FEATURES};
+use crate::field::grid::{self, GridConfig, GridLayout, MAX_GRID_FEATURES};
+use crate::field::mlp::{self, MlpLayout, MlpScratch, MAX_OUT, MAX_WIDTH};
+use crate::field::render::{self, RayOutput, RenderMode, MAX_SAMPLES};
 use crate::math;
-use crate::mlp::{self, MlpLayout, MlpScratch, MAX_OUT, MAX_WIDTH};
-use crate::render::{self, RayOutput, RenderMode, MAX_SAMPLES};
 use crate::{Aabb, Error, GradSink, ParamRead};
 
 /// The parameter groups, in buffer order.
@@ -1341,7 +1341,7 @@ mod tests {
     use std::vec;
     use std::vec::Vec;
 
-    fn small(mode: RenderMode, kind: crate::grid::GridKind) -> ModelLayout {
+    fn small(mode: RenderMode, kind: crate::field::grid::GridKind) -> ModelLayout {
         let mut geo = GridConfig::hi_map_geometry().with_kind(kind);
         geo.levels = 2;
         geo.cell_sizes = [0.5, 0.25, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
@@ -1392,7 +1392,10 @@ mod tests {
 
     #[test]
     fn one_sample_equals_the_ray_s_samples() {
-        let layout = small(RenderMode::SdfDensity, crate::grid::GridKind::Factorized);
+        let layout = small(
+            RenderMode::SdfDensity,
+            crate::field::grid::GridKind::Factorized,
+        );
         let mut t = [0.0f32; MAX_SAMPLES];
         let mut hits = 0;
         for (i, r) in rays(20).iter().enumerate() {
@@ -1512,8 +1515,8 @@ mod tests {
         // by `scripts/crosscheck_step.py`.
         for mode in [RenderMode::SdfDensity, RenderMode::Occupancy] {
             for kind in [
-                crate::grid::GridKind::Factorized,
-                crate::grid::GridKind::Dense,
+                crate::field::grid::GridKind::Factorized,
+                crate::field::grid::GridKind::Dense,
             ] {
                 let layout = small(mode, kind);
                 let p = init(&layout);
@@ -1570,7 +1573,7 @@ mod tests {
     #[test]
     fn early_termination_same_bits_either_way_and_correct_gradient() {
         for mode in [RenderMode::SdfDensity, RenderMode::Occupancy] {
-            let mut layout = small(mode, crate::grid::GridKind::Factorized);
+            let mut layout = small(mode, crate::field::grid::GridKind::Factorized);
             layout.config.min_transmittance = 0.3;
             let mut p = init(&layout);
             // A steep field (beta 40): rays that reach negative SDF turn opaque within a
@@ -1643,7 +1646,10 @@ mod tests {
 
     #[test]
     fn detached_colour_sends_no_colour_gradient_to_geometry() {
-        let layout = small(RenderMode::SdfDensity, crate::grid::GridKind::Factorized);
+        let layout = small(
+            RenderMode::SdfDensity,
+            crate::field::grid::GridKind::Factorized,
+        );
         let p = init(&layout);
         let rays = rays(8);
         let colour_only = LossConfig {
@@ -1666,7 +1672,10 @@ mod tests {
 
     #[test]
     fn layout_errors_and_counts() {
-        let l = small(RenderMode::SdfDensity, crate::grid::GridKind::Factorized);
+        let l = small(
+            RenderMode::SdfDensity,
+            crate::field::grid::GridKind::Factorized,
+        );
         assert_eq!(l.group_len(Group::Beta), 1);
         assert_eq!(l.geometry_mlp.n_in, 4);
         assert_eq!(l.appearance_mlp.n_in, 3 + 6);
@@ -1694,7 +1703,10 @@ mod tests {
 
     #[test]
     fn ray_missing_the_box_renders_nothing_and_has_no_gradient() {
-        let layout = small(RenderMode::SdfDensity, crate::grid::GridKind::Factorized);
+        let layout = small(
+            RenderMode::SdfDensity,
+            crate::field::grid::GridKind::Factorized,
+        );
         let p = init(&layout);
         let ray = Ray {
             origin: [5.0, 5.0, 5.0],

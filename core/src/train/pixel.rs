@@ -8,12 +8,12 @@
 //! `byte / 255` (exact and identical on every target).
 
 use crate::camera::{Intrinsics, Pose, PoseRead};
-use crate::model::{
+use crate::field::model::{
     ray_backward, ray_forward_taped, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
     SampleScratch, SampleTape,
 };
-use crate::render::RayOutput;
-use crate::warp::{warp_pixel, FrameImages, WarpConfig, MAX_WINDOW};
+use crate::field::render::RayOutput;
+use crate::loss::warp::{warp_pixel, FrameImages, WarpConfig, MAX_WINDOW};
 use crate::ParamRead;
 
 /// Packs an RGB colour in [0, 1] into RGBA8 (alpha 255), rounding to nearest.

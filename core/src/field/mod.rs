@@ -1,0 +1,14 @@
+//! The radiance field: what the map is and how a ray is rendered from it, forward and
+//! backward.
+//!
+//! - [`grid`]: the hierarchical factorized feature grids (geometry and appearance), sampled
+//!   trilinearly, with their gradients;
+//! - [`mlp`]: the two small decoders;
+//! - [`render`]: volume rendering of one ray from per-sample SDF values and colours;
+//! - [`model`]: the field per sample and per ray (`ray_forward`, `ray_train`,
+//!   `ray_backward`), its parameter groups and layouts.
+
+pub mod grid;
+pub mod mlp;
+pub mod model;
+pub mod render;
