@@ -2,6 +2,13 @@
 //! camera-to-world. Pixel (u, v) with integer u, v is a pixel centre. Ray directions are not
 //! normalised: in camera space d = ((u - cx)/fx, (v - cy)/fy, 1), so the sample parameter t
 //! along a ray is camera-z depth.
+//!
+//! Points and directions cross the API as `[f32; 3]` (the GPU ABI's words); inside, the
+//! products are written with `glam`'s [`Vec3`] operators, which are component-wise `f32`
+//! multiplies and adds in the written order (no fused multiply-add, no method that goes
+//! through `sqrt`), so they give the same bits on the CPU and in the shaders.
+
+use glam::Vec3;
 
 /// Pinhole intrinsics of an image of `width` x `height` pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -106,38 +113,43 @@ impl Pose {
         [self.m[0][3], self.m[1][3], self.m[2][3]]
     }
 
-    /// Rotates a camera-space vector into the world.
+    /// Column `j` of the rotation (the camera's axis `j` in world coordinates).
+    #[inline]
+    fn axis(&self, j: usize) -> Vec3 {
+        Vec3::new(self.m[0][j], self.m[1][j], self.m[2][j])
+    }
+
+    /// Row `i` of the rotation.
+    #[inline]
+    fn row(&self, i: usize) -> Vec3 {
+        Vec3::new(self.m[i][0], self.m[i][1], self.m[i][2])
+    }
+
+    /// The translation (camera centre).
+    #[inline]
+    fn translation(&self) -> Vec3 {
+        self.axis(3)
+    }
+
+    /// Rotates a camera-space vector into the world: `R d`, component `i` summed as
+    /// `(m[i][0] d.x + m[i][1] d.y) + m[i][2] d.z`.
     #[inline]
     pub fn rotate(&self, d: [f32; 3]) -> [f32; 3] {
-        let m = &self.m;
-        [
-            m[0][0] * d[0] + m[0][1] * d[1] + m[0][2] * d[2],
-            m[1][0] * d[0] + m[1][1] * d[1] + m[1][2] * d[2],
-            m[2][0] * d[0] + m[2][1] * d[1] + m[2][2] * d[2],
-        ]
+        let d = Vec3::from_array(d);
+        (self.axis(0) * d.x + self.axis(1) * d.y + self.axis(2) * d.z).to_array()
     }
 
     /// Transforms a camera-space point into the world.
     #[inline]
     pub fn transform(&self, p: [f32; 3]) -> [f32; 3] {
-        let r = self.rotate(p);
-        [
-            r[0] + self.m[0][3],
-            r[1] + self.m[1][3],
-            r[2] + self.m[2][3],
-        ]
+        (Vec3::from_array(self.rotate(p)) + self.translation()).to_array()
     }
 
     /// Transforms a world point into camera space (inverse of a rigid transform: R^T (p - t)).
     #[inline]
     pub fn inverse_transform(&self, p: [f32; 3]) -> [f32; 3] {
-        let m = &self.m;
-        let q = [p[0] - m[0][3], p[1] - m[1][3], p[2] - m[2][3]];
-        [
-            m[0][0] * q[0] + m[1][0] * q[1] + m[2][0] * q[2],
-            m[0][1] * q[0] + m[1][1] * q[1] + m[2][1] * q[2],
-            m[0][2] * q[0] + m[1][2] * q[1] + m[2][2] * q[2],
-        ]
+        let q = Vec3::from_array(p) - self.translation();
+        (self.row(0) * q.x + self.row(1) * q.y + self.row(2) * q.z).to_array()
     }
 
     /// World-space ray (origin, unnormalised direction whose camera-z component is 1) through
@@ -160,21 +172,14 @@ impl Pose {
         if !finite {
             return false;
         }
-        let col = |j: usize| [m[0][j], m[1][j], m[2][j]];
-        let dot = |a: [f32; 3], b: [f32; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-        let (c0, c1, c2) = (col(0), col(1), col(2));
-        let cross = [
-            c0[1] * c1[2] - c0[2] * c1[1],
-            c0[2] * c1[0] - c0[0] * c1[2],
-            c0[0] * c1[1] - c0[1] * c1[0],
-        ];
-        let det = dot(cross, c2);
-        (dot(c0, c0) - 1.0).abs() < tol
-            && (dot(c1, c1) - 1.0).abs() < tol
-            && (dot(c2, c2) - 1.0).abs() < tol
-            && dot(c0, c1).abs() < tol
-            && dot(c0, c2).abs() < tol
-            && dot(c1, c2).abs() < tol
+        let (c0, c1, c2) = (self.axis(0), self.axis(1), self.axis(2));
+        let det = c0.cross(c1).dot(c2);
+        (c0.length_squared() - 1.0).abs() < tol
+            && (c1.length_squared() - 1.0).abs() < tol
+            && (c2.length_squared() - 1.0).abs() < tol
+            && c0.dot(c1).abs() < tol
+            && c0.dot(c2).abs() < tol
+            && c1.dot(c2).abs() < tol
             && (det - 1.0).abs() < tol
     }
 }

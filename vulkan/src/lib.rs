@@ -192,6 +192,116 @@ mod tests {
                 used.iter().all(|&b| b < count),
                 "{name}: bindings {used:?} past its {count}"
             );
+            // The table's count is the module's: its last binding is used.
+            assert_eq!(
+                used.last().map(|b| b + 1),
+                Some(count),
+                "{name}: declared {count} bindings, the module uses {used:?}"
+            );
+        }
+    }
+
+    /// Bytes of a type of the module (scalars, vectors, arrays with a constant length,
+    /// structs laid out by their `Offset` decorations).
+    fn type_size(m: &Module, id: u32) -> u32 {
+        let t = m
+            .types_global_values
+            .iter()
+            .find(|i| i.result_id == Some(id))
+            .expect("type defined");
+        let id_at = |k: usize| match t.operands[k] {
+            Operand::IdRef(x) => x,
+            ref o => panic!("{o:?}"),
+        };
+        match t.class.opcode {
+            Op::TypeInt | Op::TypeFloat => match t.operands[0] {
+                Operand::LiteralBit32(w) => w / 8,
+                ref o => panic!("{o:?}"),
+            },
+            Op::TypeVector => match t.operands[1] {
+                Operand::LiteralBit32(n) => n * type_size(m, id_at(0)),
+                ref o => panic!("{o:?}"),
+            },
+            Op::TypeArray => {
+                let len = m
+                    .types_global_values
+                    .iter()
+                    .find(|i| i.result_id == Some(id_at(1)))
+                    .and_then(|c| match c.operands.first() {
+                        Some(Operand::LiteralBit32(n)) => Some(*n),
+                        _ => None,
+                    })
+                    .expect("array length is a constant");
+                len * type_size(m, id_at(0))
+            }
+            Op::TypeStruct => (0..t.operands.len())
+                .map(|k| {
+                    let offset = m
+                        .annotations
+                        .iter()
+                        .find_map(|a| match a.operands.as_slice() {
+                            [Operand::IdRef(s), Operand::LiteralBit32(i), Operand::Decoration(Decoration::Offset), Operand::LiteralBit32(o)]
+                                if *s == id && *i as usize == k =>
+                            {
+                                Some(*o)
+                            }
+                            _ => None,
+                        })
+                        .expect("struct member has an Offset");
+                    offset + type_size(m, id_at(k))
+                })
+                .max()
+                .unwrap_or(0),
+            other => panic!("unexpected push-constant member type {other:?}"),
+        }
+    }
+
+    /// Each entry point's push-constant block has the size the ABI's table says (the
+    /// `#[repr(C)]` struct the host fills).
+    #[test]
+    fn entry_point_push_constants_have_the_table_size() {
+        let declared: BTreeMap<&str, u32> =
+            entry::ALL.iter().map(|e| (e.name, e.push_size)).collect();
+        let m = module();
+        // Push-constant variables and the struct each points to.
+        let mut push_vars = BTreeMap::new();
+        for v in &m.types_global_values {
+            if v.class.opcode != Op::Variable
+                || v.operands.first()
+                    != Some(&Operand::StorageClass(
+                        rspirv::spirv::StorageClass::PushConstant,
+                    ))
+            {
+                continue;
+            }
+            let ptr = m
+                .types_global_values
+                .iter()
+                .find(|t| t.result_id == v.result_type)
+                .expect("pointer type");
+            let pointee = match ptr.operands[1] {
+                Operand::IdRef(x) => x,
+                ref o => panic!("{o:?}"),
+            };
+            push_vars.insert(v.result_id.unwrap(), type_size(&m, pointee));
+        }
+        for e in &m.entry_points {
+            let name = match &e.operands[2] {
+                Operand::LiteralString(s) => s.clone(),
+                _ => unreachable!(),
+            };
+            let sizes: Vec<u32> = e.operands[3..]
+                .iter()
+                .filter_map(|o| match o {
+                    Operand::IdRef(id) => push_vars.get(id).copied(),
+                    _ => None,
+                })
+                .collect();
+            assert_eq!(
+                sizes,
+                vec![declared[name.as_str()]],
+                "{name}: push-constant block size"
+            );
         }
     }
 

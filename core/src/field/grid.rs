@@ -608,83 +608,12 @@ pub fn grid_backward<P: ParamRead + ?Sized, S: GradSink>(
     while l < nl {
         let lv = &layout.level[l];
         let cell = locate(xn, lv.res);
-        let [fx, fy, fz] = cell.f;
         // dL/du, u the continuous vertex index of this level.
-        let mut d_u = [0.0f32; 3];
-        if dense {
-            let (base, s) = dense_base(lv, nc, &cell);
-            let wx = [1.0 - fx, fx];
-            let wy = [1.0 - fy, fy];
-            let wz = [1.0 - fz, fz];
-            let mut c = 0;
-            while c < nc {
-                let g = d_feat[l * nc + c];
-                let v = dense_values(params, base + c, s);
-                let mut k = 0;
-                while k < 8 {
-                    let (dx, dy, dz) = (k & 1, (k >> 1) & 1, k >> 2);
-                    let idx = base + c + dx * s[0] + dy * s[1] + dz * s[2];
-                    sink.add(idx, g * (wx[dx] * wy[dy] * wz[dz]));
-                    k += 1;
-                }
-                // Edge differences along x (pairs k, k+1), y (k, k+2), z (k, k+4).
-                let ddx = lerp(
-                    lerp(v[1] - v[0], v[3] - v[2], fy),
-                    lerp(v[5] - v[4], v[7] - v[6], fy),
-                    fz,
-                );
-                let ddy = lerp(
-                    lerp(v[2] - v[0], v[3] - v[1], fx),
-                    lerp(v[6] - v[4], v[7] - v[5], fx),
-                    fz,
-                );
-                let ddz = lerp(
-                    lerp(v[4] - v[0], v[5] - v[1], fx),
-                    lerp(v[6] - v[2], v[7] - v[3], fx),
-                    fy,
-                );
-                d_u[0] += g * ddx;
-                d_u[1] += g * ddy;
-                d_u[2] += g * ddz;
-                c += 1;
-            }
+        let d_u = if dense {
+            dense_level_backward(params, lv, nc, &cell, d_feat, l * nc, sink)
         } else {
-            let k = vm_corners(lv, nc, &cell);
-            let mut c = 0;
-            while c < nc {
-                let g = d_feat[l * nc + c];
-                let v = vm_values(params, &k, c);
-                let ([vx, vy, vz], [mxy, mxz, myz]) = vm_interp(&v, cell.f);
-                // Lines: F = vx * myz + vy * mxz + vz * mxy.
-                let gx = g * myz;
-                let gy = g * mxz;
-                let gz = g * mxy;
-                sink.add(k.x[0] + c, gx * (1.0 - fx));
-                sink.add(k.x[1] + c, gx * fx);
-                sink.add(k.y[0] + c, gy * (1.0 - fy));
-                sink.add(k.y[1] + c, gy * fy);
-                sink.add(k.z[0] + c, gz * (1.0 - fz));
-                sink.add(k.z[1] + c, gz * fz);
-                // Planes.
-                plane_backward(sink, k.xy, c, g * vz, fx, fy);
-                plane_backward(sink, k.xz, c, g * vy, fx, fz);
-                plane_backward(sink, k.yz, c, g * vx, fy, fz);
-                // Position: each term depends on each axis through exactly one factor.
-                let dvx = v.x[1] - v.x[0];
-                let dvy = v.y[1] - v.y[0];
-                let dvz = v.z[1] - v.z[0];
-                let dxy_dx = lerp(v.xy[1] - v.xy[0], v.xy[3] - v.xy[2], fy);
-                let dxy_dy = lerp(v.xy[2] - v.xy[0], v.xy[3] - v.xy[1], fx);
-                let dxz_dx = lerp(v.xz[1] - v.xz[0], v.xz[3] - v.xz[2], fz);
-                let dxz_dz = lerp(v.xz[2] - v.xz[0], v.xz[3] - v.xz[1], fx);
-                let dyz_dy = lerp(v.yz[1] - v.yz[0], v.yz[3] - v.yz[2], fz);
-                let dyz_dz = lerp(v.yz[2] - v.yz[0], v.yz[3] - v.yz[1], fy);
-                d_u[0] += g * (dvx * myz + vy * dxz_dx + vz * dxy_dx);
-                d_u[1] += g * (vx * dyz_dy + dvy * mxz + vz * dxy_dy);
-                d_u[2] += g * (vx * dyz_dz + vy * dxz_dz + dvz * mxy);
-                c += 1;
-            }
-        }
+            vm_level_backward(params, lv, nc, &cell, d_feat, l * nc, sink)
+        };
         // du/dp = (res - 1) / 2 * 2 / extent.
         let mut a = 0;
         while a < 3 {
@@ -702,6 +631,113 @@ pub fn grid_backward<P: ParamRead + ?Sized, S: GradSink>(
         a += 1;
     }
     d_p
+}
+
+/// One dense level of [`grid_backward`]: the eight corner weights times each channel's
+/// gradient `d_feat[off + c]` into `sink`, and the gradient with respect to the continuous
+/// vertex index of the level (channels summed in order).
+#[inline(always)]
+fn dense_level_backward<P: ParamRead + ?Sized, S: GradSink>(
+    params: &P,
+    lv: &LevelLayout,
+    nc: usize,
+    cell: &Cell,
+    d_feat: &[f32; MAX_GRID_FEATURES],
+    off: usize,
+    sink: &mut S,
+) -> [f32; 3] {
+    let [fx, fy, fz] = cell.f;
+    let (base, s) = dense_base(lv, nc, cell);
+    let wx = [1.0 - fx, fx];
+    let wy = [1.0 - fy, fy];
+    let wz = [1.0 - fz, fz];
+    let mut d_u = [0.0f32; 3];
+    let mut c = 0;
+    while c < nc {
+        let g = d_feat[off + c];
+        let v = dense_values(params, base + c, s);
+        let mut k = 0;
+        while k < 8 {
+            let (dx, dy, dz) = (k & 1, (k >> 1) & 1, k >> 2);
+            let idx = base + c + dx * s[0] + dy * s[1] + dz * s[2];
+            sink.add(idx, g * (wx[dx] * wy[dy] * wz[dz]));
+            k += 1;
+        }
+        // Edge differences along x (pairs k, k+1), y (k, k+2), z (k, k+4).
+        let ddx = lerp(
+            lerp(v[1] - v[0], v[3] - v[2], fy),
+            lerp(v[5] - v[4], v[7] - v[6], fy),
+            fz,
+        );
+        let ddy = lerp(
+            lerp(v[2] - v[0], v[3] - v[1], fx),
+            lerp(v[6] - v[4], v[7] - v[5], fx),
+            fz,
+        );
+        let ddz = lerp(
+            lerp(v[4] - v[0], v[5] - v[1], fx),
+            lerp(v[6] - v[2], v[7] - v[3], fx),
+            fy,
+        );
+        d_u[0] += g * ddx;
+        d_u[1] += g * ddy;
+        d_u[2] += g * ddz;
+        c += 1;
+    }
+    d_u
+}
+
+/// One factorized (VM) level of [`grid_backward`]: the line and plane corner contributions of
+/// each channel's gradient `d_feat[off + c]` into `sink`, and the gradient with respect to the
+/// continuous vertex index of the level (channels summed in order).
+#[inline(always)]
+fn vm_level_backward<P: ParamRead + ?Sized, S: GradSink>(
+    params: &P,
+    lv: &LevelLayout,
+    nc: usize,
+    cell: &Cell,
+    d_feat: &[f32; MAX_GRID_FEATURES],
+    off: usize,
+    sink: &mut S,
+) -> [f32; 3] {
+    let [fx, fy, fz] = cell.f;
+    let k = vm_corners(lv, nc, cell);
+    let mut d_u = [0.0f32; 3];
+    let mut c = 0;
+    while c < nc {
+        let g = d_feat[off + c];
+        let v = vm_values(params, &k, c);
+        let ([vx, vy, vz], [mxy, mxz, myz]) = vm_interp(&v, cell.f);
+        // Lines: F = vx * myz + vy * mxz + vz * mxy.
+        let gx = g * myz;
+        let gy = g * mxz;
+        let gz = g * mxy;
+        sink.add(k.x[0] + c, gx * (1.0 - fx));
+        sink.add(k.x[1] + c, gx * fx);
+        sink.add(k.y[0] + c, gy * (1.0 - fy));
+        sink.add(k.y[1] + c, gy * fy);
+        sink.add(k.z[0] + c, gz * (1.0 - fz));
+        sink.add(k.z[1] + c, gz * fz);
+        // Planes.
+        plane_backward(sink, k.xy, c, g * vz, fx, fy);
+        plane_backward(sink, k.xz, c, g * vy, fx, fz);
+        plane_backward(sink, k.yz, c, g * vx, fy, fz);
+        // Position: each term depends on each axis through exactly one factor.
+        let dvx = v.x[1] - v.x[0];
+        let dvy = v.y[1] - v.y[0];
+        let dvz = v.z[1] - v.z[0];
+        let dxy_dx = lerp(v.xy[1] - v.xy[0], v.xy[3] - v.xy[2], fy);
+        let dxy_dy = lerp(v.xy[2] - v.xy[0], v.xy[3] - v.xy[1], fx);
+        let dxz_dx = lerp(v.xz[1] - v.xz[0], v.xz[3] - v.xz[2], fz);
+        let dxz_dz = lerp(v.xz[2] - v.xz[0], v.xz[3] - v.xz[1], fx);
+        let dyz_dy = lerp(v.yz[1] - v.yz[0], v.yz[3] - v.yz[2], fz);
+        let dyz_dz = lerp(v.yz[2] - v.yz[0], v.yz[3] - v.yz[1], fy);
+        d_u[0] += g * (dvx * myz + vy * dxz_dx + vz * dxy_dx);
+        d_u[1] += g * (vx * dyz_dy + dvy * mxz + vz * dxy_dy);
+        d_u[2] += g * (vx * dyz_dz + vy * dxz_dz + dvz * mxy);
+        c += 1;
+    }
+    d_u
 }
 
 /// The 18 corner rows (`nc` channels each) a factorized level reads at one cell, or `None` when

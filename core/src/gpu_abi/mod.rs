@@ -128,7 +128,7 @@ pub struct SamplePush {
 }
 
 /// Push constants of the ray composite-and-loss pass: the
-/// [`crate::train::backend::LossConfig`] of the step plus the item range.
+/// [`crate::field::model::LossConfig`] of the step plus the item range.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 #[repr(C)]
 pub struct TrainPush {

@@ -159,22 +159,53 @@ pub fn ssim_patch(
     d_b: &mut [[f32; 3]; PATCH_PIXELS],
 ) -> [f32; 3] {
     let size = window_size(size);
-    let off = (PATCH - size) / 2;
     let mut w = [0.0f32; PATCH_PIXELS];
     gaussian_window(size, SSIM_SIGMA, &mut w);
-
     let mut i = 0;
     while i < PATCH_PIXELS {
         d_a[i] = [0.0; 3];
         d_b[i] = [0.0; 3];
         i += 1;
     }
+    let m = ssim_moments(size, &w, a, b);
+    let (ssim, g) = ssim_and_moment_grads(&m);
+    ssim_patch_backward(size, &w, a, b, &m, &g, d_a, d_b);
+    ssim
+}
 
-    // Window-weighted means, then central second moments (two passes: `sum w (a - mu)^2`
-    // instead of `E[a^2] - mu^2`, which cancels catastrophically in f32 when the variance is
-    // small next to `C2`).
-    let mut mu_a = [0.0f32; 3];
-    let mut mu_b = [0.0f32; 3];
+/// Offset of the central `size x size` region in an 11x11 patch.
+#[inline(always)]
+fn patch_offset(size: usize) -> usize {
+    (PATCH - size) / 2
+}
+
+/// The window-weighted moments of two patches, per channel.
+struct SsimMoments {
+    mu_a: [f32; 3],
+    mu_b: [f32; 3],
+    var_a: [f32; 3],
+    var_b: [f32; 3],
+    cov: [f32; 3],
+}
+
+/// Window-weighted means, then central second moments (two passes: `sum w (a - mu)^2`
+/// instead of `E[a^2] - mu^2`, which cancels catastrophically in f32 when the variance is
+/// small next to `C2`).
+#[inline(always)]
+fn ssim_moments(
+    size: usize,
+    w: &[f32; PATCH_PIXELS],
+    a: &[[f32; 3]; PATCH_PIXELS],
+    b: &[[f32; 3]; PATCH_PIXELS],
+) -> SsimMoments {
+    let off = patch_offset(size);
+    let mut m = SsimMoments {
+        mu_a: [0.0; 3],
+        mu_b: [0.0; 3],
+        var_a: [0.0; 3],
+        var_b: [0.0; 3],
+        cov: [0.0; 3],
+    };
     let mut r = 0;
     while r < size {
         let mut col = 0;
@@ -183,17 +214,14 @@ pub fn ssim_patch(
             let p = (r + off) * PATCH + col + off;
             let mut c = 0;
             while c < 3 {
-                mu_a[c] += wk * a[p][c];
-                mu_b[c] += wk * b[p][c];
+                m.mu_a[c] += wk * a[p][c];
+                m.mu_b[c] += wk * b[p][c];
                 c += 1;
             }
             col += 1;
         }
         r += 1;
     }
-    let mut var_a = [0.0f32; 3];
-    let mut var_b = [0.0f32; 3];
-    let mut cov = [0.0f32; 3];
     r = 0;
     while r < size {
         let mut col = 0;
@@ -202,31 +230,46 @@ pub fn ssim_patch(
             let p = (r + off) * PATCH + col + off;
             let mut c = 0;
             while c < 3 {
-                let x = a[p][c] - mu_a[c];
-                let y = b[p][c] - mu_b[c];
-                var_a[c] += wk * (x * x);
-                var_b[c] += wk * (y * y);
-                cov[c] += wk * (x * y);
+                let x = a[p][c] - m.mu_a[c];
+                let y = b[p][c] - m.mu_b[c];
+                m.var_a[c] += wk * (x * x);
+                m.var_b[c] += wk * (y * y);
+                m.cov[c] += wk * (x * y);
                 c += 1;
             }
             col += 1;
         }
         r += 1;
     }
+    m
+}
 
+/// d(SSIM)/d(moment) per channel.
+struct SsimMomentGrads {
+    mu_a: [f32; 3],
+    mu_b: [f32; 3],
+    var: [f32; 3],
+    cov: [f32; 3],
+}
+
+/// Per-channel SSIM from the moments and its derivatives with respect to them.
+#[inline(always)]
+fn ssim_and_moment_grads(m: &SsimMoments) -> ([f32; 3], SsimMomentGrads) {
     let mut ssim = [0.0f32; 3];
-    let mut g_mu_a = [0.0f32; 3];
-    let mut g_mu_b = [0.0f32; 3];
-    let mut g_var = [0.0f32; 3];
-    let mut g_cov = [0.0f32; 3];
+    let mut g = SsimMomentGrads {
+        mu_a: [0.0; 3],
+        mu_b: [0.0; 3],
+        var: [0.0; 3],
+        cov: [0.0; 3],
+    };
     let mut c = 0;
     while c < 3 {
-        let ma = mu_a[c];
-        let mb = mu_b[c];
+        let ma = m.mu_a[c];
+        let mb = m.mu_b[c];
         let a1 = 2.0 * (ma * mb) + SSIM_C1;
-        let a2 = 2.0 * cov[c] + SSIM_C2;
+        let a2 = 2.0 * m.cov[c] + SSIM_C2;
         let b1 = ma * ma + mb * mb + SSIM_C1;
-        let b2 = var_a[c] + var_b[c] + SSIM_C2;
+        let b2 = m.var_a[c] + m.var_b[c] + SSIM_C2;
         let den = b1 * b2;
         let s = a1 * a2 / den;
         ssim[c] = s;
@@ -234,14 +277,31 @@ pub fn ssim_patch(
         let d_a2 = a1 / den;
         let d_b1 = -s / b1;
         let d_b2 = -s / b2;
-        g_mu_a[c] = 2.0 * (mb * d_a1 + ma * d_b1);
-        g_mu_b[c] = 2.0 * (ma * d_a1 + mb * d_b1);
-        g_var[c] = 2.0 * d_b2;
-        g_cov[c] = 2.0 * d_a2;
+        g.mu_a[c] = 2.0 * (mb * d_a1 + ma * d_b1);
+        g.mu_b[c] = 2.0 * (ma * d_a1 + mb * d_b1);
+        g.var[c] = 2.0 * d_b2;
+        g.cov[c] = 2.0 * d_a2;
         c += 1;
     }
+    (ssim, g)
+}
 
-    r = 0;
+/// The moments' gradients pushed back to the pixels of the used region (written, not
+/// accumulated).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn ssim_patch_backward(
+    size: usize,
+    w: &[f32; PATCH_PIXELS],
+    a: &[[f32; 3]; PATCH_PIXELS],
+    b: &[[f32; 3]; PATCH_PIXELS],
+    m: &SsimMoments,
+    g: &SsimMomentGrads,
+    d_a: &mut [[f32; 3]; PATCH_PIXELS],
+    d_b: &mut [[f32; 3]; PATCH_PIXELS],
+) {
+    let off = patch_offset(size);
+    let mut r = 0;
     while r < size {
         let mut col = 0;
         while col < size {
@@ -249,17 +309,16 @@ pub fn ssim_patch(
             let p = (r + off) * PATCH + col + off;
             let mut c = 0;
             while c < 3 {
-                let x = a[p][c] - mu_a[c];
-                let y = b[p][c] - mu_b[c];
-                d_a[p][c] = wk * (g_mu_a[c] + x * g_var[c] + y * g_cov[c]);
-                d_b[p][c] = wk * (g_mu_b[c] + y * g_var[c] + x * g_cov[c]);
+                let x = a[p][c] - m.mu_a[c];
+                let y = b[p][c] - m.mu_b[c];
+                d_a[p][c] = wk * (g.mu_a[c] + x * g.var[c] + y * g.cov[c]);
+                d_b[p][c] = wk * (g.mu_b[c] + y * g.var[c] + x * g.cov[c]);
                 c += 1;
             }
             col += 1;
         }
         r += 1;
     }
-    ssim
 }
 
 #[cfg(test)]
