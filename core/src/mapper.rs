@@ -347,6 +347,13 @@ pub struct IterInfo {
     pub open_rays: f32,
     /// The step was not finite and was not applied ([`crate::train::backend::StepStats::rejected`]).
     pub rejected: bool,
+    /// What the update's frames new since the last update looked like before its first step
+    /// (online updates, iteration 0 only; 0 otherwise): the mean per-pixel loss (colour +
+    /// warp) of their sampled pixels over that of the window's other frames, and the share of
+    /// their pixels with a valid warp term. A low valid share means the newest geometry is
+    /// not yet constrained by enough views (the update cannot place it, whatever the loss).
+    pub new_loss_ratio: f32,
+    pub new_warp_valid: f32,
 }
 
 /// What one mapping update did.
@@ -1016,6 +1023,34 @@ impl<'a, B: Backend> Mapper<'a, B> {
         Ok(())
     }
 
+    /// [`IterInfo::new_loss_ratio`] and [`IterInfo::new_warp_valid`] of the results of the
+    /// iteration just run.
+    fn new_frames_fit(&self) -> (f32, f32) {
+        let n = self.win_ids.len() as u32;
+        let first_new = n - (self.st.pending as u32).min(n);
+        let (mut new_sum, mut new_n, mut new_valid) = (0.0f32, 0u32, 0u32);
+        let (mut old_sum, mut old_n) = (0.0f32, 0u32);
+        for (p, r) in self.pixels.iter().zip(self.results.iter()) {
+            let l = r.color_loss + r.warp_loss;
+            if p.frame >= first_new {
+                new_sum += l;
+                new_n += 1;
+                new_valid += (r.warp_views >= self.cfg.warp.min_views) as u32;
+            } else {
+                old_sum += l;
+                old_n += 1;
+            }
+        }
+        if new_n == 0 {
+            return (0.0, 0.0);
+        }
+        let valid = new_valid as f32 / new_n as f32;
+        if old_n == 0 || old_sum <= 0.0 {
+            return (0.0, valid);
+        }
+        ((new_sum / new_n as f32) / (old_sum / old_n as f32), valid)
+    }
+
     fn run_iters<F: FnMut(&IterInfo)>(
         &mut self,
         kind: UpdateKind,
@@ -1033,6 +1068,8 @@ impl<'a, B: Backend> Mapper<'a, B> {
             warp_valid: 0.0,
             open_rays: 0.0,
             rejected: false,
+            new_loss_ratio: 0.0,
+            new_warp_valid: 0.0,
         };
         let mut last = first;
         let mut it = 0;
@@ -1095,7 +1132,13 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 warp_valid: valid as f32 * inv,
                 open_rays: open as f32 * inv,
                 rejected: stats.rejected,
+                new_loss_ratio: 0.0,
+                new_warp_valid: 0.0,
             };
+            let mut info = info;
+            if it == 0 && kind == UpdateKind::Online {
+                (info.new_loss_ratio, info.new_warp_valid) = self.new_frames_fit();
+            }
             if stats.rejected {
                 self.on_rejected_step()?;
             } else {
@@ -1166,6 +1209,9 @@ mod tests {
         lr: [f32; crate::field::model::NUM_GROUPS],
         /// Every early-termination threshold the mapper set.
         min_t: Vec<f32>,
+        /// Results that depend on the pixel's window frame `f`: colour loss `0.25 (f + 1)`,
+        /// `f` valid warp views for even `f` and none for odd (otherwise 0.25 and none).
+        by_frame: bool,
     }
 
     impl Mock {
@@ -1184,6 +1230,7 @@ mod tests {
                 reject: false,
                 lr: [0.01; crate::field::model::NUM_GROUPS],
                 min_t: Vec::new(),
+                by_frame: false,
             }
         }
     }
@@ -1248,10 +1295,19 @@ mod tests {
                 lambda_color: batch.loss.lambda_color,
                 color_to_geometry: batch.loss.color_to_geometry,
             });
-            for r in results.iter_mut() {
-                *r = PixelResult {
-                    color_loss: 0.25,
-                    ..PixelResult::default()
+            for (r, p) in results.iter_mut().zip(batch.pixels) {
+                let f = p.frame;
+                *r = if self.by_frame {
+                    PixelResult {
+                        color_loss: 0.25 * (f + 1) as f32,
+                        warp_views: if f % 2 == 0 { f } else { 0 },
+                        ..PixelResult::default()
+                    }
+                } else {
+                    PixelResult {
+                        color_loss: 0.25,
+                        ..PixelResult::default()
+                    }
                 };
             }
             Ok(StepStats {
@@ -1540,6 +1596,41 @@ mod tests {
         let mut bad = cfg();
         bad.rejected_lr_factor = 0.0;
         assert!(refused(bad));
+    }
+
+    #[test]
+    fn online_updates_measure_their_new_frames_before_the_first_step() {
+        let mut c = cfg();
+        c.new_frame_share = 0.5;
+        let (mut px, mut res) = buffers();
+        let mut backend = Mock::new(c.slots_needed());
+        backend.by_frame = true;
+        let mut m = Mapper::new(backend, c, intr(), &mut px, &mut res).unwrap();
+        let img = image();
+        let mut infos = Vec::new();
+        for id in 0..20 {
+            m.push_frame_observed(&img, pose(id), &mut |i: &IterInfo| infos.push(*i))
+                .unwrap();
+        }
+        // 7 initialisation iterations, then the online update's 4
+        assert_eq!(infos.len(), 11);
+        assert!(infos[..7]
+            .iter()
+            .all(|i| i.new_loss_ratio == 0.0 && i.new_warp_valid == 0.0));
+        assert!(infos[8..]
+            .iter()
+            .all(|i| i.new_loss_ratio == 0.0 && i.new_warp_valid == 0.0));
+        // window of 16 (1 keyframe + 15 local), frames 11..16 new: 6 pixels each, losses
+        // 0.25 (f + 1); the 30 others are 3 pixels of frames 0..8 and 2 of frames 8..11.
+        let new_mean = 0.25 * (12.0 + 13.0 + 14.0 + 15.0 + 16.0) / 5.0;
+        let old_sum: f32 = (0..8).map(|f| 3.0 * (f + 1) as f32).sum::<f32>()
+            + (8..11).map(|f| 2.0 * (f + 1) as f32).sum::<f32>();
+        let old_mean = 0.25 * old_sum / 30.0;
+        let want = new_mean / old_mean;
+        let got = infos[7].new_loss_ratio;
+        assert!((got - want).abs() < 1e-5 * want, "{got} vs {want}");
+        // frames 12 and 14 have >= min_views (4) views: 12 of the 30 new pixels
+        assert_eq!(infos[7].new_warp_valid, 0.4);
     }
 
     #[test]

@@ -173,10 +173,11 @@ pub fn ssim_patch(
     ssim
 }
 
-/// Offset of the central `size x size` region in an 11x11 patch.
+/// Index in the 11x11 patch of pixel `k` (row-major) of its central `size x size` region.
 #[inline(always)]
-fn patch_offset(size: usize) -> usize {
-    (PATCH - size) / 2
+fn patch_index(size: usize, k: usize) -> usize {
+    let off = (PATCH - size) / 2;
+    (k / size + off) * PATCH + k % size + off
 }
 
 /// The window-weighted moments of two patches, per channel.
@@ -198,7 +199,6 @@ fn ssim_moments(
     a: &[[f32; 3]; PATCH_PIXELS],
     b: &[[f32; 3]; PATCH_PIXELS],
 ) -> SsimMoments {
-    let off = patch_offset(size);
     let mut m = SsimMoments {
         mu_a: [0.0; 3],
         mu_b: [0.0; 3],
@@ -206,40 +206,30 @@ fn ssim_moments(
         var_b: [0.0; 3],
         cov: [0.0; 3],
     };
-    let mut r = 0;
-    while r < size {
-        let mut col = 0;
-        while col < size {
-            let wk = w[r * size + col];
-            let p = (r + off) * PATCH + col + off;
-            let mut c = 0;
-            while c < 3 {
-                m.mu_a[c] += wk * a[p][c];
-                m.mu_b[c] += wk * b[p][c];
-                c += 1;
-            }
-            col += 1;
+    let mut k = 0;
+    while k < size * size {
+        let (wk, p) = (w[k], patch_index(size, k));
+        let mut c = 0;
+        while c < 3 {
+            m.mu_a[c] += wk * a[p][c];
+            m.mu_b[c] += wk * b[p][c];
+            c += 1;
         }
-        r += 1;
+        k += 1;
     }
-    r = 0;
-    while r < size {
-        let mut col = 0;
-        while col < size {
-            let wk = w[r * size + col];
-            let p = (r + off) * PATCH + col + off;
-            let mut c = 0;
-            while c < 3 {
-                let x = a[p][c] - m.mu_a[c];
-                let y = b[p][c] - m.mu_b[c];
-                m.var_a[c] += wk * (x * x);
-                m.var_b[c] += wk * (y * y);
-                m.cov[c] += wk * (x * y);
-                c += 1;
-            }
-            col += 1;
+    k = 0;
+    while k < size * size {
+        let (wk, p) = (w[k], patch_index(size, k));
+        let mut c = 0;
+        while c < 3 {
+            let x = a[p][c] - m.mu_a[c];
+            let y = b[p][c] - m.mu_b[c];
+            m.var_a[c] += wk * (x * x);
+            m.var_b[c] += wk * (y * y);
+            m.cov[c] += wk * (x * y);
+            c += 1;
         }
-        r += 1;
+        k += 1;
     }
     m
 }
@@ -300,24 +290,18 @@ fn ssim_patch_backward(
     d_a: &mut [[f32; 3]; PATCH_PIXELS],
     d_b: &mut [[f32; 3]; PATCH_PIXELS],
 ) {
-    let off = patch_offset(size);
-    let mut r = 0;
-    while r < size {
-        let mut col = 0;
-        while col < size {
-            let wk = w[r * size + col];
-            let p = (r + off) * PATCH + col + off;
-            let mut c = 0;
-            while c < 3 {
-                let x = a[p][c] - m.mu_a[c];
-                let y = b[p][c] - m.mu_b[c];
-                d_a[p][c] = wk * (g.mu_a[c] + x * g.var[c] + y * g.cov[c]);
-                d_b[p][c] = wk * (g.mu_b[c] + y * g.var[c] + x * g.cov[c]);
-                c += 1;
-            }
-            col += 1;
+    let mut k = 0;
+    while k < size * size {
+        let (wk, p) = (w[k], patch_index(size, k));
+        let mut c = 0;
+        while c < 3 {
+            let x = a[p][c] - m.mu_a[c];
+            let y = b[p][c] - m.mu_b[c];
+            d_a[p][c] = wk * (g.mu_a[c] + x * g.var[c] + y * g.cov[c]);
+            d_b[p][c] = wk * (g.mu_b[c] + y * g.var[c] + x * g.cov[c]);
+            c += 1;
         }
-        r += 1;
+        k += 1;
     }
 }
 

@@ -395,23 +395,11 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     images: &I,
 ) -> WarpResult {
     let (w, h) = images.size();
-    let mut n = n_frames;
-    if n > poses.count() {
-        n = poses.count();
-    }
-    if n > MAX_WINDOW {
-        n = MAX_WINDOW;
-    }
+    let n = window_len(n_frames, poses.count());
     if src >= n || w == 0 || h == 0 {
         return WarpResult::default();
     }
-    let half = if cfg.half > MAX_HALF {
-        MAX_HALF as i32
-    } else if cfg.half < 1 {
-        1
-    } else {
-        cfg.half as i32
-    };
+    let half = patch_half(cfg);
     let side = (2 * half + 1) as usize;
     let small = if side < 7 { side } else { 7 };
     // Storage index of offset (dx, dy) is (dy + 5) * PATCH + dx + 5.
@@ -455,28 +443,15 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
 
     let mut loss = 0.0f32;
     let mut d_depth = 0.0f32;
-    if I::CPU && mask != 0 {
-        let first = mask.trailing_zeros() as usize;
-        prefetch_patch(images, first, centres[first][0], centres[first][1], half);
-    }
+    prefetch_valid_from(images, mask, 0, &centres, half);
     let mut j = 0;
     while j < n {
         if mask & (1u32 << j) == 0 {
             j += 1;
             continue;
         }
-        if I::CPU {
-            // The next valid view's texels load while this one is computed.
-            let later = if j + 1 < 32 {
-                mask & (u32::MAX << (j + 1))
-            } else {
-                0
-            };
-            if later != 0 {
-                let next = later.trailing_zeros() as usize;
-                prefetch_patch(images, next, centres[next][0], centres[next][1], half);
-            }
-        }
+        // The next valid view's texels load while this one is computed.
+        prefetch_valid_from(images, mask, j + 1, &centres, half);
         let pose_j = poses.pose(j);
 
         // Warped patch and its derivative with respect to depth.
@@ -509,6 +484,56 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         loss,
         d_depth,
         valid_views: count,
+    }
+}
+
+/// Frames of the window the loss may use: `n_frames`, at most the poses given and
+/// [`MAX_WINDOW`].
+#[inline(always)]
+fn window_len(n_frames: usize, poses: usize) -> usize {
+    let mut n = n_frames;
+    if n > poses {
+        n = poses;
+    }
+    if n > MAX_WINDOW {
+        n = MAX_WINDOW;
+    }
+    n
+}
+
+/// The patch half size of `cfg`, clamped to `1..=MAX_HALF`.
+#[inline(always)]
+fn patch_half(cfg: &WarpConfig) -> i32 {
+    if cfg.half > MAX_HALF {
+        MAX_HALF as i32
+    } else if cfg.half < 1 {
+        1
+    } else {
+        cfg.half as i32
+    }
+}
+
+/// CPU only (a no-op for other images): starts loading the texels of the first valid view
+/// (bit of `mask`) at or after `from`.
+#[inline(always)]
+fn prefetch_valid_from<I: FrameImages + ?Sized>(
+    images: &I,
+    mask: u32,
+    from: usize,
+    centres: &[[f32; 2]; MAX_WINDOW],
+    half: i32,
+) {
+    if !I::CPU {
+        return;
+    }
+    let later = if from < 32 {
+        mask & (u32::MAX << from)
+    } else {
+        0
+    };
+    if later != 0 {
+        let next = later.trailing_zeros() as usize;
+        prefetch_patch(images, next, centres[next][0], centres[next][1], half);
     }
 }
 

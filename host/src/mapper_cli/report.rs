@@ -22,6 +22,13 @@ pub struct UpdateMetrics {
     pub warp_valid: f32,
     /// Share of the last iteration's sampled rays that left the scene box unabsorbed.
     pub open_rays: f32,
+    /// Before the update's first step: the mean loss of the frames new since the last update
+    /// over that of the window's other frames, and the share of their pixels with a valid
+    /// warp term (`IterInfo::new_loss_ratio`, `new_warp_valid`; 0 when not measured).
+    #[serde(default)]
+    pub new_loss_ratio: f32,
+    #[serde(default)]
+    pub new_warp_valid: f32,
     pub window_keyframes: u32,
     pub iters: u32,
     /// Optimisation time of the update (s), excluding evaluation.
@@ -152,7 +159,7 @@ pub(super) fn mean(v: impl Iterator<Item = f64>) -> Option<f64> {
 /// The columns of `metrics.csv`, one row per mapping update.
 pub(super) const CSV_HEADER: &str =
     "frame,kind,psnr,ssim,depth_l1_cm,loss_first,loss,color_loss,warp_loss,\
-warp_valid,window_keyframes,iters,seconds,open_rays";
+warp_valid,window_keyframes,iters,seconds,open_rays,new_loss_ratio,new_warp_valid";
 
 /// Writes `metrics.csv`: the header and every row so far, atomically ([`crate::atomic`]).
 pub(super) fn write_metrics(path: &Path, rows: &[UpdateMetrics]) -> anyhow::Result<()> {
@@ -172,7 +179,7 @@ pub(super) fn write_csv_row(
 ) -> std::io::Result<()> {
     writeln!(
         csv,
-        "{},{},{:.4},{:.4},{},{:.6},{:.6},{:.6},{:.6},{:.4},{},{},{:.3},{:.4}",
+        "{},{},{:.4},{:.4},{},{:.6},{:.6},{:.6},{:.6},{:.4},{},{},{:.3},{:.4},{:.3},{:.4}",
         r.frame,
         r.kind,
         r.psnr,
@@ -186,7 +193,9 @@ pub(super) fn write_csv_row(
         r.window_keyframes,
         r.iters,
         r.seconds,
-        r.open_rays
+        r.open_rays,
+        r.new_loss_ratio,
+        r.new_warp_valid
     )
 }
 
@@ -251,7 +260,7 @@ impl PlainLog {
             self.updates += 1;
             eprintln!(
                 "[{:7.1} s] update {} ({}) at frame {}: PSNR {:.2} dB, SSIM {:.3}, Depth L1 {}, \
-                 {} iterations in {:.1} s, {:.0} % of rays left the box unabsorbed",
+                 {} iterations in {:.1} s, {:.0} % of rays left the box unabsorbed{}",
                 self.start.elapsed().as_secs_f64(),
                 self.updates,
                 r.kind,
@@ -263,7 +272,8 @@ impl PlainLog {
                     .unwrap_or_else(|| "-".into()),
                 r.iters,
                 r.seconds,
-                100.0 * r.open_rays
+                100.0 * r.open_rays,
+                new_frames_note(r)
             );
         }
     }
@@ -276,6 +286,22 @@ impl PlainLog {
             );
         }
     }
+}
+
+/// The log line's note on an online update's new frames: the share of their pixels whose
+/// warping term had enough views before the update's first step; below half, their depth is
+/// not yet constrained (it settles once later frames see the same region).
+fn new_frames_note(r: &UpdateMetrics) -> String {
+    if r.kind != "online" {
+        return String::new();
+    }
+    let pct = 100.0 * r.new_warp_valid;
+    let warn = if r.new_warp_valid < 0.5 {
+        " (their depth is not constrained yet)"
+    } else {
+        ""
+    };
+    format!(", new frames' pixels with enough views {pct:.0} %{warn}")
 }
 
 pub(super) fn fmt_opt(x: Option<f64>, digits: usize) -> String {

@@ -499,6 +499,8 @@ impl<'o> UpdateRecorder<'o> {
             warp_loss: report.last.warp_loss,
             warp_valid: report.last.warp_valid,
             open_rays: report.last.open_rays,
+            new_loss_ratio: report.first.new_loss_ratio,
+            new_warp_valid: report.first.new_warp_valid,
             window_keyframes: report.window_keyframes,
             iters: report.iters,
             seconds,
