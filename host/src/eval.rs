@@ -528,6 +528,72 @@ impl fmt::Display for EvalReport {
     }
 }
 
+/// The ground truth of a dataset without `gt_mesh.ply`: its depth frames (every
+/// `gt_stride`-th) back-projected and voxel-downsampled.
+fn depth_truth(
+    ds: &dyn crate::dataset::Dataset,
+    gt: &Path,
+    opts: &EvalOptions,
+) -> anyhow::Result<Vec<[f32; 3]>> {
+    if !ds.has_depth() {
+        bail!(
+            "{}: no gt_mesh.ply and no depth to build a ground truth from",
+            gt.display()
+        );
+    }
+    let frames = (0..ds.len()).step_by(opts.gt_stride).map(|i| ds.frame(i));
+    let mut depth_err = None;
+    let views = frames.map_while(|f| match f {
+        Ok(f) => match f.depth {
+            Some(d) => Some((d.data, f.intrinsics, f.pose)),
+            None => {
+                depth_err = Some(anyhow::anyhow!("frame {} has no depth", f.index));
+                None
+            }
+        },
+        Err(e) => {
+            depth_err = Some(e.into());
+            None
+        }
+    });
+    let pts = depth_point_cloud(views, opts.voxel_m)?;
+    if let Some(e) = depth_err {
+        return Err(e.context(format!("reading depth of {}", gt.display())));
+    }
+    Ok(pts)
+}
+
+/// The reconstruction culled by the dataset's frames (every `cull_stride`-th) as
+/// `opts.culling` says: by their frusta, or also by their ground-truth depth.
+fn cull_by_dataset(
+    rec: Mesh,
+    ds: &dyn crate::dataset::Dataset,
+    gt: &Path,
+    opts: &EvalOptions,
+) -> anyhow::Result<Mesh> {
+    Ok(match opts.culling {
+        Culling::None => rec,
+        Culling::Frustum => {
+            let views = (0..ds.len())
+                .step_by(opts.cull_stride)
+                .map(|i| (ds.intrinsics(), ds.pose(i), None::<Vec<f32>>));
+            cull_mesh(&rec, views, None)
+        }
+        Culling::FrustumOcclusion => {
+            if !ds.has_depth() {
+                bail!("{}: occlusion culling needs depth", gt.display());
+            }
+            let mut views = Vec::new();
+            for i in (0..ds.len()).step_by(opts.cull_stride) {
+                let f = ds.frame(i)?;
+                let d = f.depth.context("frame without depth")?;
+                views.push((f.intrinsics, f.pose, Some(d.data)));
+            }
+            cull_mesh(&rec, views, Some(opts.occlusion_eps_m))
+        }
+    })
+}
+
 /// Evaluates a mesh file against a ground truth and builds the report (the caller prints it
 /// with `Display`). `gt` is a PLY file (a mesh, or a point cloud when it has no faces) or a
 /// dataset directory ([`crate::dataset::open`]): its `gt_mesh.ply` when present and
@@ -562,53 +628,14 @@ pub fn eval_report(mesh: &Path, gt: &Path, opts: &EvalOptions) -> anyhow::Result
             (GroundTruth::Mesh(Mesh::read_ply(&mesh_path)?), "mesh")
         } else {
             let ds = ds.as_ref().expect("opened above");
-            if !ds.has_depth() {
-                bail!(
-                    "{}: no gt_mesh.ply and no depth to build a ground truth from",
-                    gt.display()
-                );
-            }
-            let frames = (0..ds.len()).step_by(opts.gt_stride).map(|i| ds.frame(i));
-            let mut depth_err = None;
-            let views = frames.map_while(|f| match f {
-                Ok(f) => match f.depth {
-                    Some(d) => Some((d.data, f.intrinsics, f.pose)),
-                    None => {
-                        depth_err = Some(anyhow::anyhow!("frame {} has no depth", f.index));
-                        None
-                    }
-                },
-                Err(e) => {
-                    depth_err = Some(e.into());
-                    None
-                }
-            });
-            let pts = depth_point_cloud(views, opts.voxel_m)?;
-            if let Some(e) = depth_err {
-                return Err(e.context(format!("reading depth of {}", gt.display())));
-            }
-            (GroundTruth::Points(pts), "depth")
+            (
+                GroundTruth::Points(depth_truth(ds.as_ref(), gt, opts)?),
+                "depth",
+            )
         };
-        let rec = match (opts.culling, ds.as_ref()) {
-            (Culling::None, _) | (_, None) => rec,
-            (Culling::Frustum, Some(ds)) => {
-                let views = (0..ds.len())
-                    .step_by(opts.cull_stride)
-                    .map(|i| (ds.intrinsics(), ds.pose(i), None::<Vec<f32>>));
-                cull_mesh(&rec, views, None)
-            }
-            (Culling::FrustumOcclusion, Some(ds)) => {
-                if !ds.has_depth() {
-                    bail!("{}: occlusion culling needs depth", gt.display());
-                }
-                let mut views = Vec::new();
-                for i in (0..ds.len()).step_by(opts.cull_stride) {
-                    let f = ds.frame(i)?;
-                    let d = f.depth.context("frame without depth")?;
-                    views.push((f.intrinsics, f.pose, Some(d.data)));
-                }
-                cull_mesh(&rec, views, Some(opts.occlusion_eps_m))
-            }
+        let rec = match ds.as_ref() {
+            Some(ds) => cull_by_dataset(rec, ds.as_ref(), gt, opts)?,
+            None => rec,
         };
         (truth, kind, rec)
     } else {

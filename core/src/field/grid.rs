@@ -187,6 +187,95 @@ fn vertices_per_axis(extent: f32, cell: f32) -> Result<u32, Error> {
     Ok(cells + 1)
 }
 
+/// The level, channel and box checks of [`GridLayout::new`].
+fn check_grid_config(cfg: &GridConfig, aabb: &Aabb) -> Result<(), Error> {
+    if cfg.levels == 0 {
+        return Err(Error::InvalidConfig("grid: levels must be at least 1"));
+    }
+    if cfg.levels as usize > MAX_LEVELS {
+        return Err(Error::Capacity {
+            what: "grid levels",
+            needed: cfg.levels as u64,
+            capacity: MAX_LEVELS as u64,
+        });
+    }
+    if cfg.channels == 0 {
+        return Err(Error::InvalidConfig("grid: channels must be at least 1"));
+    }
+    let features = cfg.levels as u64 * cfg.channels as u64;
+    if features > MAX_GRID_FEATURES as u64 {
+        return Err(Error::Capacity {
+            what: "grid features (levels * channels)",
+            needed: features,
+            capacity: MAX_GRID_FEATURES as u64,
+        });
+    }
+    if !aabb.is_valid() {
+        return Err(Error::InvalidConfig(
+            "grid: box must be finite with a positive extent on every axis",
+        ));
+    }
+    Ok(())
+}
+
+/// Vertices per axis of every used level of `cfg` over `aabb` (checked cell sizes).
+fn level_resolutions(cfg: &GridConfig, aabb: &Aabb) -> Result<[[u32; 3]; MAX_LEVELS], Error> {
+    let extent = aabb.extent();
+    let mut res_all = [[0u32; 3]; MAX_LEVELS];
+    let mut l = 0;
+    while l < cfg.levels as usize {
+        let cell = cfg.cell_sizes[l];
+        if !(cell.is_finite() && cell > 0.0) {
+            return Err(Error::InvalidConfig(
+                "grid: cell sizes must be finite and positive",
+            ));
+        }
+        let mut a = 0;
+        while a < 3 {
+            res_all[l][a] = vertices_per_axis(extent[a], cell)?;
+            a += 1;
+        }
+        l += 1;
+    }
+    Ok(res_all)
+}
+
+/// Per used level: its offset, the offsets of its planes xy, xz, yz and lines x, y, z
+/// (factorized), and its parameter count; and the total. In `u64` with saturation, for the
+/// caller to check against `u32`.
+fn level_offsets(
+    cfg: &GridConfig,
+    res_all: &[[u32; 3]; MAX_LEVELS],
+) -> ([[u64; 8]; MAX_LEVELS], u64) {
+    let ch = cfg.channels as u64;
+    let mut offset: u64 = 0;
+    let mut offsets = [[0u64; 8]; MAX_LEVELS];
+    let mut l = 0;
+    while l < cfg.levels as usize {
+        let [rx, ry, rz] = res_all[l].map(|r| r as u64);
+        let o = &mut offsets[l];
+        o[0] = offset;
+        let count = match cfg.kind {
+            GridKind::Factorized => {
+                let sizes = [rx * ry, rx * rz, ry * rz, rx, ry, rz];
+                let mut at = offset;
+                let mut b = 0;
+                while b < 6 {
+                    o[1 + b] = at;
+                    at = at.saturating_add(sizes[b] * ch);
+                    b += 1;
+                }
+                at - offset
+            }
+            GridKind::Dense => rx.saturating_mul(ry).saturating_mul(rz).saturating_mul(ch),
+        };
+        o[7] = count;
+        offset = offset.saturating_add(count);
+        l += 1;
+    }
+    (offsets, offset)
+}
+
 impl GridLayout {
     /// Builds the offset table of `cfg` over `aabb`.
     ///
@@ -195,86 +284,19 @@ impl GridLayout {
     /// than [`MAX_LEVELS`] levels, more than [`MAX_GRID_FEATURES`] features, more than 2^24
     /// vertices on an axis, or more parameters than fit in a `u32`.
     pub fn new(cfg: &GridConfig, aabb: Aabb) -> Result<Self, Error> {
-        if cfg.levels == 0 {
-            return Err(Error::InvalidConfig("grid: levels must be at least 1"));
-        }
-        if cfg.levels as usize > MAX_LEVELS {
-            return Err(Error::Capacity {
-                what: "grid levels",
-                needed: cfg.levels as u64,
-                capacity: MAX_LEVELS as u64,
-            });
-        }
-        if cfg.channels == 0 {
-            return Err(Error::InvalidConfig("grid: channels must be at least 1"));
-        }
-        let features = cfg.levels as u64 * cfg.channels as u64;
-        if features > MAX_GRID_FEATURES as u64 {
-            return Err(Error::Capacity {
-                what: "grid features (levels * channels)",
-                needed: features,
-                capacity: MAX_GRID_FEATURES as u64,
-            });
-        }
-        if !aabb.is_valid() {
-            return Err(Error::InvalidConfig(
-                "grid: box must be finite with a positive extent on every axis",
-            ));
-        }
-        let extent = aabb.extent();
+        check_grid_config(cfg, &aabb)?;
         let nl = cfg.levels as usize;
-        let ch = cfg.channels as u64;
-        let mut level = [LevelLayout::UNUSED; MAX_LEVELS];
-        let mut res_all = [[0u32; 3]; MAX_LEVELS];
-        let mut l = 0;
-        while l < nl {
-            let cell = cfg.cell_sizes[l];
-            if !(cell.is_finite() && cell > 0.0) {
-                return Err(Error::InvalidConfig(
-                    "grid: cell sizes must be finite and positive",
-                ));
-            }
-            let mut a = 0;
-            while a < 3 {
-                res_all[l][a] = vertices_per_axis(extent[a], cell)?;
-                a += 1;
-            }
-            l += 1;
-        }
-        // Offsets in u64 with saturation; checked against u32 at the end.
-        let mut offset: u64 = 0;
-        let mut offsets = [[0u64; 8]; MAX_LEVELS]; // offset, planes xy xz yz, lines x y z, count
-        l = 0;
-        while l < nl {
-            let [rx, ry, rz] = res_all[l].map(|r| r as u64);
-            let o = &mut offsets[l];
-            o[0] = offset;
-            let count = match cfg.kind {
-                GridKind::Factorized => {
-                    let sizes = [rx * ry, rx * rz, ry * rz, rx, ry, rz];
-                    let mut at = offset;
-                    let mut b = 0;
-                    while b < 6 {
-                        o[1 + b] = at;
-                        at = at.saturating_add(sizes[b] * ch);
-                        b += 1;
-                    }
-                    at - offset
-                }
-                GridKind::Dense => rx.saturating_mul(ry).saturating_mul(rz).saturating_mul(ch),
-            };
-            o[7] = count;
-            offset = offset.saturating_add(count);
-            l += 1;
-        }
-        if offset > u32::MAX as u64 {
+        let res_all = level_resolutions(cfg, &aabb)?;
+        let (offsets, total) = level_offsets(cfg, &res_all);
+        if total > u32::MAX as u64 {
             return Err(Error::Capacity {
                 what: "grid parameters",
-                needed: offset,
+                needed: total,
                 capacity: u32::MAX as u64,
             });
         }
-        l = 0;
+        let mut level = [LevelLayout::UNUSED; MAX_LEVELS];
+        let mut l = 0;
         while l < nl {
             let o = offsets[l];
             let factorized = cfg.kind == GridKind::Factorized;
@@ -294,7 +316,7 @@ impl GridLayout {
             channels: cfg.channels,
             aabb,
             level,
-            param_count: offset as u32,
+            param_count: total as u32,
         })
     }
 
