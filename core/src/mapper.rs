@@ -1122,7 +1122,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 valid += (r.warp_views >= self.cfg.warp.min_views) as u32;
                 open += (r.opacity < 0.5) as u32;
             }
-            let info = IterInfo {
+            let mut info = IterInfo {
                 kind,
                 iter: it,
                 iters,
@@ -1135,7 +1135,6 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 new_loss_ratio: 0.0,
                 new_warp_valid: 0.0,
             };
-            let mut info = info;
             if it == 0 && kind == UpdateKind::Online {
                 (info.new_loss_ratio, info.new_warp_valid) = self.new_frames_fit();
             }
