@@ -53,6 +53,7 @@
 
 use crate::camera::{Intrinsics, Pose};
 use crate::field::model::{Group, Ray, RayResult};
+use crate::loss::planar::PlanarConfig;
 use crate::loss::warp::{WarpConfig, MAX_WINDOW};
 use crate::rng::{hash_u32, SplitMix};
 use crate::train::backend::{Backend, ImageStore, MapBatch};
@@ -134,6 +135,14 @@ pub struct MapperConfig {
     /// collapsed onto the camera in newly explored space gets a plausible start (0 = off).
     pub lambda_depth_prior_online: f32,
     pub depth_prior_near: f32,
+    /// The edge-aware planarity prior on the rendered depth (see [`crate::loss::planar`]):
+    /// weight per pixel, averaged like the colour term (0 = off), edge sensitivity and
+    /// smooth-L1 threshold. When on, the sampled pixels come in triplets `b - s`, `b`,
+    /// `b + s` along a row or a column of one frame, `s` drawn in `1..=planar_spacing` px.
+    pub lambda_planar: f32,
+    pub planar_edge: f32,
+    pub planar_beta: f32,
+    pub planar_spacing: u32,
     /// Non-finite steps: every rejected step (see [`crate::train::backend::StepStats::rejected`]) is
     /// skipped and counted; after `rejected_lr_after` rejected steps in a row (0 = never)
     /// every group's learning rate is multiplied by `rejected_lr_factor` (in (0, 1]).
@@ -177,6 +186,10 @@ impl MapperConfig {
             depth_prior_iters: 150,
             lambda_depth_prior_online: 0.0,
             depth_prior_near: 0.5,
+            lambda_planar: 0.0,
+            planar_edge: 10.0,
+            planar_beta: 0.05,
+            planar_spacing: 8,
             rejected_lr_after: 3,
             rejected_lr_factor: 0.5,
             init_min_transmittance: 0.0,
@@ -273,6 +286,20 @@ impl MapperConfig {
         if !(ok(self.lambda_color_init) && ok(self.lambda_color) && ok(self.lambda_warp)) {
             return Err(Error::InvalidConfig(
                 "mapper: loss weights must be finite and >= 0",
+            ));
+        }
+        if !(ok(self.lambda_planar) && ok(self.planar_edge) && ok(self.planar_beta)) {
+            return Err(Error::InvalidConfig(
+                "mapper: lambda_planar, planar_edge and planar_beta must be finite and >= 0",
+            ));
+        }
+        if self.lambda_planar > 0.0
+            && (self.planar_spacing == 0
+                || store.width <= 2 * (self.border + self.planar_spacing)
+                || store.height <= 2 * (self.border + self.planar_spacing))
+        {
+            return Err(Error::InvalidConfig(
+                "mapper: planar_spacing must be >= 1 and leave room inside the sampling border",
             ));
         }
         self.warp.validate()?;
@@ -976,6 +1003,40 @@ impl<'a, B: Backend> Mapper<'a, B> {
         self.sample_range(n_old, n, old_total as usize, new_total);
     }
 
+    /// Turns every complete triple of sampled pixels (items `3g..3g + 3`) into a planarity
+    /// triplet around its middle pixel: a spacing `s` in `1..=planar_spacing` and a row or a
+    /// column drawn, the middle pixel moved inside the border by at least `s`, the outer two
+    /// at `-s` and `+s` in the middle pixel's frame.
+    fn make_triplets(&mut self) {
+        let (w, h) = (self.k.width, self.k.height);
+        let b = self.cfg.border;
+        let total = self.cfg.pixels as usize;
+        let mut first = 0;
+        while first + 3 <= total {
+            let mid = self.pixels[first + 1];
+            let s = 1 + self.rng.below(self.cfg.planar_spacing);
+            let row = self.rng.below(2) == 0;
+            let (lo, hi_u, hi_v) = (b + s, w - 1 - b - s, h - 1 - b - s);
+            let (mut a, mut c) = (mid, mid);
+            if row {
+                let u = mid.u.clamp(lo, hi_u);
+                a.u = u - s;
+                c.u = u + s;
+                self.pixels[first + 1].u = u;
+            } else {
+                let v = mid.v.clamp(lo, hi_v);
+                a.v = v - s;
+                c.v = v + s;
+                self.pixels[first + 1].v = v;
+            }
+            a.frame = mid.frame;
+            c.frame = mid.frame;
+            self.pixels[first] = a;
+            self.pixels[first + 2] = c;
+            first += 3;
+        }
+    }
+
     /// Draws `total` pixels spread evenly over window frames `f0..f1` into
     /// `pixels[idx0..idx0 + total]` (`total / n` each, the first `total % n` one more).
     fn sample_range(&mut self, f0: u32, f1: u32, idx0: usize, total: u32) {
@@ -1075,6 +1136,9 @@ impl<'a, B: Backend> Mapper<'a, B> {
         let mut it = 0;
         while it < iters {
             self.sample_pixels(kind);
+            if self.cfg.lambda_planar > 0.0 {
+                self.make_triplets();
+            }
             let init = kind == UpdateKind::Init;
             let loss = MappingLoss {
                 lambda_color: if init {
@@ -1098,6 +1162,11 @@ impl<'a, B: Backend> Mapper<'a, B> {
                     0.0
                 } else {
                     self.cfg.depth_prior_near
+                },
+                planar: PlanarConfig {
+                    weight: self.cfg.lambda_planar,
+                    edge: self.cfg.planar_edge,
+                    beta: self.cfg.planar_beta,
                 },
             };
             let batch = MapBatch {
@@ -1529,6 +1598,43 @@ mod tests {
         // different iterations draw different pixels
         let calls = &m.backend().calls;
         assert_ne!(calls[0].pixels, calls[1].pixels);
+    }
+
+    /// With the planarity prior the pixels come as line triplets (rows and columns, spacing
+    /// within `planar_spacing`) inside the border; a spacing that does not fit is refused.
+    #[test]
+    fn planarity_draws_line_triplets_inside_the_border() {
+        let mut c = cfg();
+        c.lambda_planar = 0.1;
+        c.planar_spacing = 4;
+        let (mut px, mut res) = buffers();
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 20);
+        let (mut rows, mut cols) = (0, 0);
+        for call in &m.backend().calls {
+            assert_eq!(call.pixels.len(), 60);
+            for t in call.pixels.chunks_exact(3) {
+                let t = [t[0], t[1], t[2]];
+                assert!(crate::train::pixel::is_line_triplet(&t), "{t:?}");
+                let s = (t[1].u - t[0].u) + (t[1].v - t[0].v);
+                assert!((1..=4).contains(&s), "{t:?}");
+                for p in t {
+                    assert!(p.u >= 10 && p.u < 54 && p.v >= 10 && p.v < 38, "{p:?}");
+                }
+                if t[0].v == t[1].v {
+                    rows += 1;
+                } else {
+                    cols += 1;
+                }
+            }
+        }
+        assert!(rows > 50 && cols > 50, "rows {rows} columns {cols}");
+        let mut bad = cfg();
+        bad.lambda_planar = 0.1;
+        bad.planar_spacing = 14; // 48 px high: 2 * (10 + 14) = 48
+        assert!(refused(bad));
+        bad.planar_spacing = 0;
+        assert!(refused(bad));
     }
 
     #[test]

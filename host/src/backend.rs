@@ -19,7 +19,7 @@ use himap_core::train::adam::{AdamConfig, AdamStep};
 use himap_core::train::backend::{
     copy_group, write_group, Backend, ImageStore, MapBatch, StepStats,
 };
-use himap_core::train::batch::{run_items, BatchJob, ItemRunner, MapPixels, Rays};
+use himap_core::train::batch::{run_items, BatchJob, ItemRunner, MapPixels, Rays, TripletMemo};
 use himap_core::train::fixed;
 use himap_core::train::pixel::{PixelResult, SlotPixels};
 use rayon::prelude::*;
@@ -629,6 +629,7 @@ impl ParallelCpuBackend {
                     scratch,
                     tape,
                     sink,
+                    memo: TripletMemo::EMPTY,
                 };
                 run_items(job, &mut runner, c * CHUNK, &mut results);
             });

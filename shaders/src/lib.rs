@@ -838,11 +838,35 @@ pub fn pixel_train_cs(
     let mut res = PixelResult::default();
     let mut live = 0;
     if (px.frame as usize) < n {
-        let ray = read_ray(pixel_rays, i);
         let mut cache = RayCache::new();
+        // the planarity partners' depths: their own rays composited from their records
+        let mut triplet = pixel::PixelTriplet::NONE;
+        if loss.planar.weight != 0.0 {
+            if let Some((first, m)) = pixel::triplet_of(i, pc.total as usize) {
+                triplet.pixels = [
+                    read_pixel(pixels, first),
+                    read_pixel(pixels, first + 1),
+                    read_pixel(pixels, first + 2),
+                ];
+                if pixel::is_line_triplet(&triplet.pixels) {
+                    triplet.member = m as u32;
+                    let mut k = 0;
+                    while k < 3 {
+                        if k != m {
+                            let j = first + k;
+                            let partner = read_ray(pixel_rays, j);
+                            load_ray(&layout, beta, &partner, j, pixel_samples, &mut cache);
+                            triplet.depth[k] = cache.out.depth;
+                        }
+                        k += 1;
+                    }
+                }
+            }
+        }
+        let ray = read_ray(pixel_rays, i);
         load_ray(&layout, beta, &ray, i, pixel_samples, &mut cache);
         let (r, d_color, d_depth) =
-            pixel::pixel_loss(&window, px, &ray, &cache.out, cache.n, &loss);
+            pixel::pixel_loss(&window, px, &ray, &cache.out, cache.n, &loss, &triplet);
         res = r;
         live = cache.n;
         if cache.n > 0 {

@@ -17,7 +17,9 @@ use himap_core::field::model::{
 };
 use himap_core::field::render::RenderMode;
 use himap_core::gpu_abi::{pixel_result_record, ray_result_record};
+use himap_core::loss::planar::PlanarConfig;
 use himap_core::loss::warp::WarpConfig;
+use himap_core::rng::SplitMix;
 use himap_core::train::adam::AdamConfig;
 use himap_core::train::backend::{paper_adam, Backend, ImageStore, MapBatch, StepStats};
 use himap_core::train::pixel::{pack_rgba8, MappingLoss, PixelResult, PixelSample};
@@ -460,6 +462,39 @@ fn mapping_loss(step: u32, n: usize) -> MappingLoss {
         lambda_depth_prior: if step < 2 { 0.5 } else { 0.0 },
         depth_prior: 1.5,
         depth_prior_near: if step == 1 { 1.0 } else { 0.0 },
+        // the planarity prior in steps 1 and 3 (their pixels come in line triplets)
+        planar: if step % 2 == 1 {
+            PlanarConfig {
+                weight: 0.5,
+                edge: 10.0,
+                beta: 0.05,
+            }
+        } else {
+            PlanarConfig::OFF
+        },
+    }
+}
+
+/// Makes pixel triples `3g..3g + 3` line triplets around their middle pixel (spacing 1..=3,
+/// rows and columns), except every fourth triple, which stays as drawn (no triplet).
+fn line_triplets(pixels: &mut [PixelSample], k: &Intrinsics, rng: &mut SplitMix) {
+    for (g, t) in pixels.chunks_exact_mut(3).enumerate() {
+        if g % 4 == 3 {
+            continue;
+        }
+        let s = 1 + rng.below(3);
+        let mut mid = t[1];
+        let (mut a, mut c) = (mid, mid);
+        if g % 2 == 0 {
+            mid.u = mid.u.clamp(s, k.width - 1 - s);
+            (a.u, c.u) = (mid.u - s, mid.u + s);
+            (a.v, c.v) = (mid.v, mid.v);
+        } else {
+            mid.v = mid.v.clamp(s, k.height - 1 - s);
+            (a.v, c.v) = (mid.v - s, mid.v + s);
+            (a.u, c.u) = (mid.u, mid.u);
+        }
+        t.copy_from_slice(&[a, mid, c]);
     }
 }
 
@@ -481,8 +516,9 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
     let mut reference = Reference::new(&data, store);
     // frame i in slot (i + 2) % slots
     let slots: Vec<u32> = (0..frames as u32).map(|i| (i + 2) % store.slots).collect();
-    let mut rng = himap_core::rng::SplitMix::new(5);
-    let n = 96;
+    let mut rng = SplitMix::new(5);
+    // not a multiple of 3: the last two pixels belong to no planarity triplet
+    let n = 98;
     let mut any_warp = false;
     {
         let mut cpu = reference.backend(adam);
@@ -491,13 +527,16 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
             b.upload_frame(slot, img).unwrap();
         }
         for step in 0..4u32 {
-            let pixels: Vec<PixelSample> = (0..n)
+            let mut pixels: Vec<PixelSample> = (0..n)
                 .map(|_| PixelSample {
                     frame: (rng.unit() * frames as f32) as u32 % frames as u32,
                     u: (rng.unit() * k.width as f32) as u32 % k.width,
                     v: (rng.unit() * k.height as f32) as u32 % k.height,
                 })
                 .collect();
+            if step % 2 == 1 {
+                line_triplets(&mut pixels, &k, &mut rng);
+            }
             let batch = MapBatch {
                 k,
                 poses: &poses,

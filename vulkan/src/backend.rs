@@ -37,7 +37,7 @@ use crate::buffers::{
 };
 use crate::device;
 use crate::error::VulkanError;
-use crate::passes::{dispatch_items, push_bytes, range_push, Passes, Pipelines};
+use crate::passes::{batch_push, dispatch_items, push_bytes, range_push, Passes, Pipelines};
 use crate::raw::{Buffer, Gpu, Memory, PhysicalInfo, ShaderModule};
 use crate::words;
 use himap_core::error::check_len;
@@ -770,7 +770,9 @@ impl Backend for VulkanBackend {
                 passes.sample_forward(r, seed, true)?;
                 let pipeline = &pipelines.pixel_train;
                 let set = passes.bind_composite(r, pipeline, &[window, pixels, images], output)?;
-                dispatch_items(r, pipeline, &set, n, passes.max_groups, range_push);
+                // the planarity triplets are cut by the whole batch's size
+                let push = |first, count| batch_push(first, count, n as u32);
+                dispatch_items(r, pipeline, &set, n, passes.max_groups, push);
                 r.barrier();
                 passes.sample_backward(r)?;
             }

@@ -99,6 +99,16 @@ pub(crate) fn range_push(first: u32, count: u32) -> [u8; 32] {
     })
 }
 
+/// Push constants of a per-item entry point that also needs the whole batch's size.
+pub(crate) fn batch_push(first: u32, count: u32, total: u32) -> [u8; 32] {
+    push_bytes(RangePush {
+        n: count,
+        first,
+        total,
+        ..Default::default()
+    })
+}
+
 /// What the passes of one submission share: pipelines, model buffers, and the batch's rays
 /// and sample records.
 pub(crate) struct Passes<'a> {
@@ -291,5 +301,8 @@ mod tests {
         });
         assert_eq!(&r[..8], &[7, 0, 0, 0, 9, 0, 0, 0]);
         assert!(r[8..].iter().all(|&x| x == 0));
+        // every field of a block is pushed (a field left out reads 0 in the shader)
+        let t = batch_push(9, 7, 300); // first 9, count 7
+        assert_eq!(&t[..12], &[7, 0, 0, 0, 9, 0, 0, 0, 44, 1, 0, 0]);
     }
 }

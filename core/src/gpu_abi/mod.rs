@@ -110,7 +110,8 @@ pub struct RangePush {
     /// Items in this dispatch; invocation `i` handles item `first + i`.
     pub n: u32,
     pub first: u32,
-    pub _pad0: u32,
+    /// Items in the whole batch (the mapping pass's planarity triplets need it; 0 elsewhere).
+    pub total: u32,
     pub _pad1: u32,
 }
 
@@ -190,7 +191,7 @@ impl PushWords for KernelPush {
 
 impl PushWords for RangePush {
     fn words(&self) -> [u32; MAX_PUSH_WORDS] {
-        [self.n, self.first, 0, 0, 0, 0, 0, 0]
+        [self.n, self.first, self.total, 0, 0, 0, 0, 0]
     }
 }
 

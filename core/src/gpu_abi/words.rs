@@ -14,7 +14,7 @@
 //! | [`GridConfig`] | [`GRID_CONFIG`] = 11 | kind, levels, channels, cell_sizes (8) |
 //! | [`ModelConfig`] | [`MODEL_CONFIG`] = 38 | aabb (6), geometry grid config (11), appearance grid config (11), hidden, hidden_layers, dual_path, render_mode, samples, beta_init, grid_init_std, sdf_bias_init, max_depth, min_transmittance |
 //! | [`ModelLayout`] | [`MODEL_LAYOUT`] = 263 | config, geometry grid layout, appearance grid layout, geometry MLP layout, appearance MLP layout |
-//! | [`MappingLoss`] | [`MAPPING_LOSS`] = 17 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior, depth_prior_near |
+//! | [`MappingLoss`] | [`MAPPING_LOSS`] = 20 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior, depth_prior_near, planar (weight, edge, beta) |
 //! | window | [`WINDOW`] = 448 | intrinsics, frames, image width, image height, slots ([`MAX_WINDOW`]), poses ([`MAX_WINDOW`] x [`POSE`]), mapping loss |
 
 use crate::camera::{Intrinsics, Pose, PoseRead};
@@ -22,6 +22,7 @@ use crate::field::grid::{GridConfig, GridKind, GridLayout, LevelLayout, MAX_LEVE
 use crate::field::mlp::{MlpLayout, MAX_HIDDEN_LAYERS};
 use crate::field::model::{ModelConfig, ModelLayout};
 use crate::field::render::RenderMode;
+use crate::loss::planar::PlanarConfig;
 use crate::loss::warp::{WarpConfig, MAX_WINDOW};
 use crate::train::pixel::MappingLoss;
 use crate::Aabb;
@@ -67,7 +68,7 @@ pub fn split(w: &[u32], k: usize) -> usize {
 }
 
 /// Words of a [`MappingLoss`].
-pub const MAPPING_LOSS: usize = 17;
+pub const MAPPING_LOSS: usize = 20;
 /// Offset of the slot table in the window words.
 pub const WINDOW_SLOTS: usize = INTRINSICS + 3;
 /// Offset of the poses in the window words.
@@ -380,6 +381,11 @@ pub fn mapping_loss_from_words(w: &[u32], at: usize) -> MappingLoss {
         lambda_depth_prior: fword(w, at + 14),
         depth_prior: fword(w, at + 15),
         depth_prior_near: fword(w, at + 16),
+        planar: PlanarConfig {
+            weight: fword(w, at + 17),
+            edge: fword(w, at + 18),
+            beta: fword(w, at + 19),
+        },
     }
 }
 
@@ -401,6 +407,9 @@ pub fn mapping_loss_to_words(l: &MappingLoss, w: &mut [u32], at: usize) {
     put(w, at + 14, l.lambda_depth_prior.to_bits());
     put(w, at + 15, l.depth_prior.to_bits());
     put(w, at + 16, l.depth_prior_near.to_bits());
+    put(w, at + 17, l.planar.weight.to_bits());
+    put(w, at + 18, l.planar.edge.to_bits());
+    put(w, at + 19, l.planar.beta.to_bits());
 }
 
 /// Window frame count, image size and slot table from window words at 0.

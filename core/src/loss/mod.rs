@@ -28,6 +28,7 @@
 //! `dS/da_k = w_k (2 mu_b dA1 + 2 mu_a dB1 + 2 (a_k - mu_a) dB2 + 2 (b_k - mu_b) dA2)`
 //! (symmetric for `b`). `B1 >= C1 > 0` and `B2 >= C2 > 0`, so nothing divides by zero.
 
+pub mod planar;
 pub mod warp;
 
 use crate::math;

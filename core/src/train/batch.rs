@@ -19,7 +19,8 @@ use crate::field::model::{
 use crate::loss::warp::FrameImages;
 use crate::train::backend::{summarize, summarize_pixels, MapBatch, StepStats};
 use crate::train::pixel::{
-    pixel_train, MappingLoss, PixelResult, PixelSample, SlotPixels, WindowImages, WindowView,
+    is_line_triplet, pixel_train, triplet_depth, triplet_of, MappingLoss, PixelResult, PixelSample,
+    PixelTriplet, SlotPixels, WindowImages, WindowView,
 };
 use crate::ParamRead;
 
@@ -32,6 +33,30 @@ pub struct ItemRunner<'r, P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink
     pub scratch: &'r mut SampleScratch,
     pub tape: &'r mut T,
     pub sink: &'r mut S,
+    /// The rendered depths of the planarity triplet the runner is in (a run's items come in
+    /// order, so a triplet's three items usually share one runner); start a run with
+    /// [`TripletMemo::EMPTY`].
+    pub memo: TripletMemo,
+}
+
+/// Rendered depths of one planarity triplet, kept between its items: the depth of batch item
+/// `first + k` when `known[k]`. A depth is a function of the parameters, the item's pixel, id
+/// and the step's seed only, none of which change within a run, so a kept depth has the bits
+/// a new forward would give (a runner lives for one run of items).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TripletMemo {
+    pub first: usize,
+    pub depth: [f32; 3],
+    pub known: [bool; 3],
+}
+
+impl TripletMemo {
+    /// Nothing kept.
+    pub const EMPTY: Self = Self {
+        first: usize::MAX,
+        depth: [0.0; 3],
+        known: [false; 3],
+    };
 }
 
 /// One batch of work: its items and what each runs.
@@ -144,6 +169,58 @@ impl<'a, P: SlotPixels + ?Sized> MapPixels<'a, WindowImages<'a, P>, [Pose]> {
     }
 }
 
+impl<I: FrameImages + ?Sized, PS: PoseRead + ?Sized> MapPixels<'_, I, PS> {
+    /// Item `i`'s planarity triplet, the partners' depths rendered here unless the runner's
+    /// [`TripletMemo`] has them (from the triplet's earlier items in this run).
+    fn triplet<P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
+        &self,
+        r: &mut ItemRunner<'_, P, T, S>,
+        i: usize,
+    ) -> PixelTriplet {
+        let mut t = PixelTriplet::NONE;
+        if self.loss.planar.weight == 0.0 {
+            return t;
+        }
+        let Some((first, m)) = triplet_of(i, self.pixels.len()) else {
+            return t;
+        };
+        let mut k = 0;
+        while k < 3 {
+            t.pixels[k] = self.pixels[first + k];
+            k += 1;
+        }
+        if !is_line_triplet(&t.pixels) {
+            return t;
+        }
+        t.member = m as u32;
+        if r.memo.first != first {
+            r.memo = TripletMemo::EMPTY;
+            r.memo.first = first;
+        }
+        let mut k = 0;
+        while k < 3 {
+            if k != m && r.memo.known[k] {
+                t.depth[k] = r.memo.depth[k];
+            } else if k != m {
+                t.depth[k] = triplet_depth(
+                    r.layout,
+                    r.params,
+                    &self.window,
+                    t.pixels[k],
+                    (first + k) as u32,
+                    self.loss,
+                    r.cache,
+                    r.scratch,
+                );
+                r.memo.depth[k] = t.depth[k];
+                r.memo.known[k] = true;
+            }
+            k += 1;
+        }
+        t
+    }
+}
+
 impl<I: FrameImages + ?Sized, PS: PoseRead + ?Sized> BatchJob for MapPixels<'_, I, PS> {
     type Output = PixelResult;
 
@@ -157,18 +234,26 @@ impl<I: FrameImages + ?Sized, PS: PoseRead + ?Sized> BatchJob for MapPixels<'_, 
         r: &mut ItemRunner<'_, P, T, S>,
         i: usize,
     ) -> PixelResult {
-        pixel_train(
+        let triplet = self.triplet(r, i);
+        let result = pixel_train(
             r.layout,
             r.params,
             &self.window,
             self.pixels[i],
             i as u32,
             self.loss,
+            &triplet,
             r.cache,
             r.scratch,
             r.tape,
             r.sink,
-        )
+        );
+        let m = triplet.member as usize;
+        if m < 3 && r.memo.first == i - m {
+            r.memo.depth[m] = result.depth;
+            r.memo.known[m] = true;
+        }
+        result
     }
 
     fn summarize(results: &[PixelResult], t: u32) -> StepStats {

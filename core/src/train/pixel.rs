@@ -13,6 +13,7 @@ use crate::field::model::{
     SampleScratch, SampleTape,
 };
 use crate::field::render::RayOutput;
+use crate::loss::planar::{planarity, PlanarConfig};
 use crate::loss::warp::{warp_pixel, FrameImages, WarpConfig, MAX_WINDOW};
 use crate::ParamRead;
 
@@ -138,6 +139,70 @@ pub struct MappingLoss {
     /// online guard for views that collapse onto the camera in space not explored yet (the
     /// camera is in free space, so nothing is that close). 0 = every pixel.
     pub depth_prior_near: f32,
+    /// The edge-aware planarity prior on the rendered depth of pixel triplets (items `3g`,
+    /// `3g + 1`, `3g + 2` of the batch; see [`crate::loss::planar`]), scaled by
+    /// `color_scale`. `weight` 0 = off.
+    pub planar: PlanarConfig,
+}
+
+/// The planarity triplet a batch item belongs to: its three pixels, their rendered depths
+/// (the item's own is filled in from its forward) and which of the three the item is.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct PixelTriplet {
+    pub pixels: [PixelSample; 3],
+    pub depth: [f32; 3],
+    /// 0, 1 or 2; anything else: the item belongs to no triplet.
+    pub member: u32,
+}
+
+impl PixelTriplet {
+    /// No triplet.
+    pub const NONE: Self = Self {
+        pixels: [PixelSample {
+            frame: 0,
+            u: 0,
+            v: 0,
+        }; 3],
+        depth: [0.0; 3],
+        member: 3,
+    };
+}
+
+/// Item `i` of a batch of `n` belongs to triplet `i / 3` when the triplet is complete (the
+/// last `n % 3` items belong to none): `(first item, member)`.
+#[inline(always)]
+pub fn triplet_of(i: usize, n: usize) -> Option<(usize, usize)> {
+    let first = i - i % 3;
+    if first + 3 <= n {
+        Some((first, i - first))
+    } else {
+        None
+    }
+}
+
+/// Whether three samples are pixels `b - s`, `b`, `b + s` (`s > 0`) along a row or a column
+/// of one frame: the shape the planarity prior needs (others are ignored).
+#[inline(always)]
+pub fn is_line_triplet(p: &[PixelSample; 3]) -> bool {
+    let [a, b, c] = *p;
+    if a.frame != b.frame || c.frame != b.frame {
+        return false;
+    }
+    let row = a.v == b.v && c.v == b.v && a.u < b.u && b.u - a.u == c.u.wrapping_sub(b.u);
+    let col = a.u == b.u && c.u == b.u && a.v < b.v && b.v - a.v == c.v.wrapping_sub(b.v);
+    row || col
+}
+
+/// `v[m]` for `m` in 0..3 without a bounds check (`v[2]` past it).
+#[inline(always)]
+fn pick(v: [f32; 3], m: u32) -> f32 {
+    if m == 0 {
+        v[0]
+    } else if m == 1 {
+        v[1]
+    } else {
+        v[2]
+    }
 }
 
 /// What one sampled pixel produced.
@@ -207,6 +272,7 @@ pub fn pixel_loss<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     out: &RayOutput,
     n: usize,
     loss: &MappingLoss,
+    triplet: &PixelTriplet,
 ) -> (PixelResult, [f32; 3], f32) {
     let (l1, d_c) = crate::loss::l1_color(out.color, ray.target);
     let kc = loss.color_scale * loss.lambda_color;
@@ -246,11 +312,40 @@ pub fn pixel_loss<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         result.color_loss += kp * v;
         d_depth += kp * dv;
     }
+    let m = triplet.member;
+    if loss.planar.weight != 0.0
+        && n > 0
+        && m < 3
+        && is_line_triplet(&triplet.pixels)
+        && (triplet.pixels[0].frame as usize) < window.poses.count()
+    {
+        let f = triplet.pixels[0].frame as usize;
+        let texel = |p: PixelSample| window.images.texel(f, p.u, p.v);
+        let rgb = [
+            texel(triplet.pixels[0]),
+            texel(triplet.pixels[1]),
+            texel(triplet.pixels[2]),
+        ];
+        let mut depth = triplet.depth;
+        if m == 0 {
+            depth[0] = out.depth;
+        } else if m == 1 {
+            depth[1] = out.depth;
+        } else {
+            depth[2] = out.depth;
+        }
+        let (v, g) = planarity(depth, &rgb, &loss.planar);
+        let kp = loss.color_scale * loss.planar.weight;
+        // each of the three items reports a third of the triplet's loss
+        result.color_loss += kp * v * (1.0 / 3.0);
+        d_depth += kp * pick(g, m);
+    }
     (result, d_color, d_depth)
 }
 
 /// Forward, losses and backward for one sampled pixel. `pixel_id` seeds the stratified jitter
-/// (use the pixel's index in the batch). Stages: [`pixel_ray`], `ray_forward`, [`pixel_loss`],
+/// (use the pixel's index in the batch); `triplet` gives the other two rendered depths of the
+/// pixel's planarity triplet ([`PixelTriplet::NONE`] without one; see [`triplet_depth`]). Stages: [`pixel_ray`], `ray_forward`, [`pixel_loss`],
 /// `ray_backward` (a GPU runs them as separate passes with the same results).
 #[allow(clippy::too_many_arguments)]
 pub fn pixel_train<
@@ -266,6 +361,7 @@ pub fn pixel_train<
     px: PixelSample,
     pixel_id: u32,
     loss: &MappingLoss,
+    triplet: &PixelTriplet,
     cache: &mut RayCache,
     scratch: &mut SampleScratch,
     tape: &mut T,
@@ -278,7 +374,8 @@ pub fn pixel_train<
     ray_forward_taped(
         layout, params, &ray, pixel_id, loss.seed, true, cache, scratch, tape,
     );
-    let (result, d_color, d_depth) = pixel_loss(window, px, &ray, &cache.out, cache.n, loss);
+    let (result, d_color, d_depth) =
+        pixel_loss(window, px, &ray, &cache.out, cache.n, loss, triplet);
     ray_backward(
         layout,
         params,
@@ -293,6 +390,28 @@ pub fn pixel_train<
         sink,
     );
     result
+}
+
+/// The rendered depth of batch item `id` at pixel `px`, as that item's own forward renders it
+/// (same ray, id, seed and jitter, so the same bits): a planarity partner's depth on the CPU
+/// (the GPU composites the partner's sample records instead). 0 outside the window.
+#[allow(clippy::too_many_arguments)]
+pub fn triplet_depth<P: ParamRead + ?Sized, I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    window: &WindowView<'_, I, PS>,
+    px: PixelSample,
+    id: u32,
+    loss: &MappingLoss,
+    cache: &mut RayCache,
+    scratch: &mut SampleScratch,
+) -> f32 {
+    let (ray, ok) = pixel_ray(window, px);
+    if !ok {
+        return 0.0;
+    }
+    crate::field::model::ray_forward(layout, params, &ray, id, loss.seed, true, cache, scratch);
+    cache.out.depth
 }
 
 /// Convenience: the [`LossConfig`] of a plain colour step equivalent to a mapping loss without
@@ -379,6 +498,7 @@ mod tests {
             lambda_depth_prior: 2.0,
             depth_prior: 1.5,
             depth_prior_near: 0.0,
+            planar: PlanarConfig::OFF,
         };
         let ray = Ray {
             origin: [0.0; 3],
@@ -390,7 +510,7 @@ mod tests {
         let d_depth = |depth: f32, loss: &MappingLoss| {
             let mut out = RayOutput::zeroed();
             out.depth = depth;
-            pixel_loss(&window, px0, &ray, &out, 4, loss).2
+            pixel_loss(&window, px0, &ray, &out, 4, loss, &PixelTriplet::NONE).2
         };
         // |D - 1.5| > 0.1: smooth L1's slope -1, times color_scale * lambda = 1
         assert_eq!(d_depth(0.2, &loss), -1.0);
@@ -399,5 +519,88 @@ mod tests {
         assert_eq!(d_depth(0.2, &loss), -1.0);
         assert_eq!(d_depth(0.8, &loss), 0.0);
         assert_eq!(d_depth(3.0, &loss), 0.0);
+    }
+
+    /// The planarity term: each member of a line triplet gets its own component of the
+    /// triplet's gradient (`color_scale * weight * d planarity / d depth`) and a third of its
+    /// loss; a triplet that is not a line, or an item of none, gets nothing.
+    #[test]
+    fn planarity_gives_each_member_its_component() {
+        let (w, h) = (8u32, 6u32);
+        let px = std::vec![0xff80_8080u32; (w * h) as usize];
+        let imgs = WindowImages {
+            width: w,
+            height: h,
+            slots: [0u32; MAX_WINDOW],
+            pixels: &px[..],
+        };
+        let poses = [Pose::IDENTITY];
+        let window = WindowView {
+            k: Intrinsics {
+                width: w,
+                height: h,
+                fx: 4.0,
+                fy: 4.0,
+                cx: 3.5,
+                cy: 2.5,
+            },
+            poses: &poses[..],
+            images: &imgs,
+        };
+        let planar = PlanarConfig {
+            weight: 2.0,
+            edge: 10.0,
+            beta: 0.05,
+        };
+        let loss = MappingLoss {
+            lambda_color: 0.0,
+            lambda_warp: 0.0,
+            color_scale: 0.25,
+            warp_scale: 0.25,
+            color_to_geometry: true,
+            seed: 0,
+            warp: WarpConfig::dim_slam(),
+            lambda_depth_prior: 0.0,
+            depth_prior: 1.5,
+            depth_prior_near: 0.0,
+            planar,
+        };
+        let ray = Ray {
+            origin: [0.0; 3],
+            dir: [0.0, 0.0, 1.0],
+            target: [0.5; 3],
+            target_depth: 0.0,
+        };
+        let at = |u, v| PixelSample { frame: 0, u, v };
+        let depths = [1.0f32, 2.0, 1.0];
+        let grey = [unpack_rgba8(0xff80_8080); 3];
+        let (v, g) = planarity(depths, &grey, &planar);
+        let run = |pixels: [PixelSample; 3], member: u32| {
+            let t = PixelTriplet {
+                pixels,
+                depth: depths,
+                member,
+            };
+            let mut out = RayOutput::zeroed();
+            out.depth = if member < 3 {
+                depths[member as usize]
+            } else {
+                1.0
+            };
+            let (r, _, d) = pixel_loss(&window, pixels[1], &ray, &out, 4, &loss, &t);
+            (r.color_loss, d)
+        };
+        let line = [at(2, 3), at(4, 3), at(6, 3)];
+        for m in 0..3u32 {
+            let (l, d) = run(line, m);
+            assert_eq!(d, 0.25 * 2.0 * g[m as usize], "member {m}");
+            assert_eq!(l, 0.25 * 2.0 * v * (1.0 / 3.0));
+        }
+        assert_eq!(run(line, 3), (0.0, 0.0));
+        // not equally spaced, or not one frame: no term
+        assert_eq!(run([at(2, 3), at(4, 3), at(5, 3)], 0), (0.0, 0.0));
+        let mut other = line;
+        other[2].frame = 1;
+        assert_eq!(run(other, 0), (0.0, 0.0));
     }
 }

@@ -10,7 +10,7 @@ use crate::field::model::{
 };
 use crate::train::adam::{self, AdamConfig, AdamStep};
 use crate::train::backend::{copy_group, write_group, Backend, ImageStore, MapBatch, StepStats};
-use crate::train::batch::{run_items, BatchJob, ItemRunner, MapPixels, Rays};
+use crate::train::batch::{run_items, BatchJob, ItemRunner, MapPixels, Rays, TripletMemo};
 use crate::train::fixed;
 use crate::train::pixel::PixelResult;
 use crate::{Error, NullSink};
@@ -218,6 +218,7 @@ fn drive<J: BatchJob, S: ModelGradSink>(
         scratch: &mut scratch,
         tape: &mut Recompute,
         sink,
+        memo: TripletMemo::EMPTY,
     };
     run_items(job, &mut runner, 0, results);
     Ok(J::summarize(results, t))
