@@ -26,11 +26,12 @@ pub use device::{describe_devices, list_devices, DeviceInfo, DeviceKind, DEVICE_
 pub use error::VulkanError;
 
 /// The post-processed SPIR-V module with every entry point (little-endian words; use
-/// `ash::util::read_spv` to get aligned `u32`s).
-pub const SHADERS_SPV: &[u8] = include_bytes!(env!("HIMAP_SHADERS_SPV"));
+/// `ash::util::read_spv` to get aligned `u32`s). Committed: `himap-shader-build` writes it
+/// from `shaders/` and `himap-core` (see the README's "Rebuilding the shaders").
+pub const SHADERS_SPV: &[u8] = include_bytes!("../spirv/himap_shaders.spv");
 
 mod shader_info {
-    include!(concat!(env!("OUT_DIR"), "/shader_info.rs"));
+    include!("../spirv/shader_info.rs");
 }
 pub use shader_info::{ENTRY_POINTS, NO_CONTRACTION_DECORATIONS};
 

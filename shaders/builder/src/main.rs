@@ -1,8 +1,15 @@
-//! Compiles `../shaders` to one SPIR-V module with rust-gpu, then hardens it for bit-exactness:
+//! Compiles the shader crate (`shaders/`) to the SPIR-V module the Vulkan backend embeds
+//! (`vulkan/spirv/himap_shaders.spv`, with `vulkan/spirv/shader_info.rs`), then hardens it for
+//! bit-exactness. The module is committed, so everything else builds on stable Rust; this tool
+//! needs rust-gpu's pinned nightly (`shaders/rust-toolchain.toml` selects it in `shaders/`):
+//!
+//! ```sh
+//! cd shaders && cargo run --release -p himap-shader-build            # rewrite the module
+//! cd shaders && cargo run --release -p himap-shader-build -- --check # fail if it is stale
+//! ```
 //!
 //! 1. `spirv-builder` (target `spirv-unknown-vulkan1.2`, capabilities `Int64` + `Int64Atomics`)
-//!    builds the shader crate with the pinned nightly (see `rust-toolchain.toml`), without
-//!    rust-gpu's own spirv-opt run.
+//!    builds the shader crate without rust-gpu's own spirv-opt run.
 //! 2. A post-pass with `rspirv` rejects instructions whose GPU result is not bit-identical to
 //!    the CPU's (GLSL.std.450 `Fma`, the approximate built-ins `Exp`, `Log`, `Sqrt`, `Pow`,
 //!    `Sin`, ... that rust-gpu substitutes for `libm` calls, and `OpFRem`/`OpFMod`), then
@@ -15,101 +22,101 @@
 //! undecorated `a * b + c` into GLSL.std.450 `Fma`; lavapipe happens to lower `Fma` unfused,
 //! real GPUs do not. With the decorations in place before spirv-opt it fuses nothing.
 //!
-//! Outputs: `$OUT_DIR/himap_shaders.spv` (exported as `HIMAP_SHADERS_SPV`) and
-//! `$OUT_DIR/shader_info.rs` (entry point names, decoration count), both used by `src/lib.rs`.
-//! Set `HIMAP_VERBOSE_BUILD=1` to get the post-pass summary as a cargo warning (it is always
-//! printed to the build script's stdout, visible with `cargo build -vv`).
-
-// `std::io::set_output_capture` (see `build_filtered`); this build needs the pinned nightly
-// anyway (rustc_codegen_spirv).
-#![feature(internal_output_capture)]
-#![allow(internal_features)]
+//! CI runs `--check`: a kernel change (in `shaders/` or `himap-core`) cannot land with a stale
+//! module. The output is deterministic for a given toolchain and SPIRV-Tools version.
 
 use rspirv::binary::Assemble;
 use rspirv::dr::{Instruction, Module, Operand};
 use rspirv::spirv::{Decoration, Op};
-use spirv_builder::{Capability, CompileResult, SpirvBuilder};
+use spirv_builder::{Capability, SpirvBuilder};
 use std::collections::BTreeSet;
 use std::env;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
-use std::process::Command;
-use std::sync::{Arc, Mutex};
+use std::process::{Command, ExitCode};
 
-/// The nightly rust-gpu 0.11 needs (must match `rust-toolchain.toml`).
+/// The nightly rust-gpu 0.11 needs (must match `shaders/rust-toolchain.toml`).
 const TOOLCHAIN: &str = "nightly-2026-08-15";
 const TARGET: &str = "spirv-unknown-vulkan1.2";
+/// Where the module lives, relative to the repository root.
+const SPV: &str = "vulkan/spirv/himap_shaders.spv";
+const INFO: &str = "vulkan/spirv/shader_info.rs";
 
 type BoxError = Box<dyn std::error::Error>;
 
-fn main() {
-    if let Err(e) = run() {
-        // cargo shows the build script's stderr when it fails.
-        eprintln!("\nerror: himap-vulkan build script: {e}\n");
-        std::process::exit(1);
+fn main() -> ExitCode {
+    let mut check = false;
+    for a in env::args().skip(1) {
+        match a.as_str() {
+            "--check" => check = true,
+            "-h" | "--help" => {
+                println!(
+                    "usage: cd shaders && cargo run --release -p himap-shader-build [-- --check]\n\
+                     Writes {SPV} and {INFO}; with --check, compares them with a fresh build \
+                     instead and fails when they differ."
+                );
+                return ExitCode::SUCCESS;
+            }
+            other => {
+                eprintln!("error: unknown argument `{other}` (try --help)");
+                return ExitCode::from(2);
+            }
+        }
+    }
+    match run(check) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("\nerror: himap-shader-build: {e}\n");
+            ExitCode::FAILURE
+        }
     }
 }
 
-fn run() -> Result<(), BoxError> {
-    println!("cargo::rerun-if-env-changed=HIMAP_VERBOSE_BUILD");
+fn run(check: bool) -> Result<(), BoxError> {
     check_toolchain()?;
     check_tool("spirv-opt")?;
     check_tool("spirv-val")?;
 
-    let manifest = PathBuf::from(env::var("CARGO_MANIFEST_DIR")?);
-    let root = manifest.join("..");
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
     let shader_crate = root.join("shaders");
-    // spirv-builder reports the shader and himap-core sources; manifests and the toolchain
-    // pin matter too.
-    for f in [
-        "Cargo.toml",
-        "Cargo.lock",
-        "rust-toolchain.toml",
-        "shaders/Cargo.toml",
-        "core/Cargo.toml",
-    ] {
-        println!("cargo::rerun-if-changed={}", root.join(f).display());
-    }
-    let mut builder = SpirvBuilder::new(&shader_crate, TARGET)
+    let builder = SpirvBuilder::new(&shader_crate, TARGET)
         .capability(Capability::Int64)
         .capability(Capability::Int64Atomics)
         // rust-gpu would run spirv-opt on the undecorated module, and SPIRV-Tools 2023.1
         // (Debian 12's) folds `a * b + c` into GLSL.std.450 `Fma` there. We run spirv-opt
         // ourselves after the NoContraction pass, which stops that fusion.
         .extra_arg("--no-spirv-opt");
-    // rerun-if-changed on every shader and himap-core source, forward rustc diagnostics.
-    builder.build_script.defaults = true;
-    // We export the post-processed module ourselves (HIMAP_SHADERS_SPV); the raw module's
-    // `himap_shaders.spv` variable would only invite using the undecorated one.
-    builder.build_script.env_shader_spv_path = Some(false);
-    let result = build_filtered(&builder).map_err(|e| {
+    let result = builder.build().map_err(|e| {
         format!(
             "compiling the shaders (`{}`) with rust-gpu failed: {e}\n\
-             (rust-gpu diagnostics are above as warnings; a Rust construct rust-gpu rejects in \
-             himap-core shows up there with its source location)",
+             (rust-gpu diagnostics are above; a Rust construct rust-gpu rejects in himap-core \
+             shows up there with its source location)",
             shader_crate.display()
         )
     })?;
     let raw_path = result.module.unwrap_single();
     let raw = std::fs::read(raw_path)
         .map_err(|e| format!("reading the compiled module {}: {e}", raw_path.display()))?;
+    let work = raw_path
+        .parent()
+        .ok_or("the compiled module has no folder")?
+        .to_path_buf();
 
     // 1. Source-level checks and NoContraction on the unoptimized module.
     let mut module = rspirv::dr::load_bytes(&raw)
         .map_err(|e| format!("parsing {} with rspirv: {e}", raw_path.display()))?;
     check_forbidden(&module, FROM_SOURCE)?;
     let added_before = decorate_no_contraction(&mut module);
-    let out_dir = PathBuf::from(env::var("OUT_DIR")?);
-    let unopt_path = out_dir.join("himap_shaders.unopt.spv");
+    let unopt_path = work.join("himap_shaders.unopt.spv");
     std::fs::write(&unopt_path, to_bytes(&module))?;
 
     // 2. Optimize (rust-gpu's own choice of passes), then check and decorate again: the
     //    optimizer may create new float instructions (they get decorated too) and must not
     //    have fused anything.
-    let spv_path = out_dir.join("himap_shaders.spv");
-    optimize(&unopt_path, &spv_path)?;
-    let mut module = rspirv::dr::load_bytes(std::fs::read(&spv_path)?)
-        .map_err(|e| format!("parsing {} with rspirv: {e}", spv_path.display()))?;
+    let opt_path = work.join("himap_shaders.opt.spv");
+    optimize(&unopt_path, &opt_path)?;
+    let mut module = rspirv::dr::load_bytes(std::fs::read(&opt_path)?)
+        .map_err(|e| format!("parsing {} with rspirv: {e}", opt_path.display()))?;
     check_forbidden(&module, FROM_OPTIMIZER)?;
     let added_after = decorate_no_contraction(&mut module);
     let entry_points = entry_point_names(&module);
@@ -119,61 +126,51 @@ fn run() -> Result<(), BoxError> {
         }
     }
     let bytes = to_bytes(&module);
-    std::fs::write(&spv_path, &bytes)?;
-    validate(&spv_path)?;
+    std::fs::write(&opt_path, &bytes)?;
+    validate(&opt_path)?;
     let decorations = count_no_contraction(&module);
 
     let mut info = String::new();
     writeln!(
         info,
-        "/// Entry points of the module, in module order.\n\
+        "// Written by himap-shader-build with the module beside it; do not edit.\n\
+         /// Entry points of the module, in module order.\n\
          pub const ENTRY_POINTS: &[&str] = &{entry_points:?};\n\
          /// `NoContraction` decorations in the module.\n\
          pub const NO_CONTRACTION_DECORATIONS: usize = {decorations};"
     )?;
-    std::fs::write(out_dir.join("shader_info.rs"), info)?;
-
-    let summary = format!(
+    println!(
         "shaders: {} entry points ({}); NoContraction: {added_before} added before spirv-opt, \
-         {added_after} after, {decorations} in the module; {} bytes -> {}",
+         {added_after} after, {decorations} in the module; {} bytes",
         entry_points.len(),
         entry_points.join(", "),
         bytes.len(),
-        spv_path.display()
     );
-    println!("{summary}");
-    if env::var_os("HIMAP_VERBOSE_BUILD").is_some_and(|v| !v.is_empty() && v != "0") {
-        println!("cargo::warning={summary}");
+    let (spv, info_path) = (root.join(SPV), root.join(INFO));
+    if check {
+        let same_spv = std::fs::read(&spv).is_ok_and(|b| b == bytes);
+        let same_info = std::fs::read_to_string(&info_path).is_ok_and(|s| s == info);
+        if !(same_spv && same_info) {
+            return Err(format!(
+                "the committed module ({SPV}, {INFO}) differs from the shader sources' \
+                 build{}: rebuild it with `cd shaders && cargo run --release -p \
+                 himap-shader-build` and commit it",
+                if same_spv {
+                    " (only its info file)"
+                } else {
+                    ""
+                }
+            )
+            .into());
+        }
+        println!("{SPV} and {INFO} match the sources");
+    } else {
+        std::fs::create_dir_all(spv.parent().ok_or("no folder")?)?;
+        std::fs::write(&spv, &bytes)?;
+        std::fs::write(&info_path, &info)?;
+        println!("wrote {} and {}", spv.display(), info_path.display());
     }
-    println!("cargo::rustc-env=HIMAP_SHADERS_SPV={}", spv_path.display());
     Ok(())
-}
-
-/// Runs the builder, passing its build-script output (rerun-if-changed lines, forwarded rustc
-/// diagnostics) through except rust-gpu's warning that we disabled its spirv-opt run.
-fn build_filtered(builder: &SpirvBuilder) -> Result<CompileResult, BoxError> {
-    let sink = Arc::new(Mutex::new(Vec::<u8>::new()));
-    let previous = std::io::set_output_capture(Some(sink.clone()));
-    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| builder.build()));
-    std::io::set_output_capture(previous);
-    let captured = sink.lock().map(|b| b.clone()).unwrap_or_default();
-    let mut skip_blank = false;
-    for line in String::from_utf8_lossy(&captured).lines() {
-        if line.contains("`spirv-opt` should have ran") {
-            skip_blank = true;
-            continue;
-        }
-        if skip_blank && line.trim() == "cargo::warning=" {
-            skip_blank = false;
-            continue;
-        }
-        skip_blank = false;
-        println!("{line}");
-    }
-    match result {
-        Ok(r) => Ok(r?),
-        Err(panic) => std::panic::resume_unwind(panic),
-    }
 }
 
 fn to_bytes(module: &Module) -> Vec<u8> {
@@ -216,12 +213,14 @@ fn optimize(input: &Path, output: &Path) -> Result<(), BoxError> {
 fn check_toolchain() -> Result<(), BoxError> {
     let hint = format!(
         "install it with `rustup toolchain install {TOOLCHAIN} --profile minimal \
-         -c rust-src,rustc-dev,llvm-tools` and build from the workspace root, where \
-         rust-toolchain.toml selects it (himap-core alone also builds on stable: \
-         `cargo +stable build -p himap-core`)"
+         -c rust-src,rustc-dev,llvm-tools` and run this tool from `shaders/`, where \
+         rust-toolchain.toml selects it"
     );
-    let rustc = env::var("RUSTC").unwrap_or_else(|_| "rustc".into());
+    // the rustc the shader build will run (rustup picks shaders/rust-toolchain.toml there)
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
+    let rustc = "rustc".to_string();
     let out = Command::new(&rustc)
+        .current_dir(&dir)
         .args(["-vV"])
         .output()
         .map_err(|e| format!("running `{rustc} -vV`: {e}"))?;
@@ -233,7 +232,10 @@ fn check_toolchain() -> Result<(), BoxError> {
         )
         .into());
     }
-    let sysroot = Command::new(&rustc).args(["--print", "sysroot"]).output()?;
+    let sysroot = Command::new(&rustc)
+        .current_dir(&dir)
+        .args(["--print", "sysroot"])
+        .output()?;
     let sysroot = PathBuf::from(String::from_utf8_lossy(&sysroot.stdout).trim());
     let rustlib = sysroot.join("lib").join("rustlib");
     for (component, path) in [
