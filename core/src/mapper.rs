@@ -143,6 +143,9 @@ pub struct MapperConfig {
     pub planar_edge: f32,
     pub planar_beta: f32,
     pub planar_spacing: u32,
+    /// Share of the batch's triples made triplets (spread evenly over the batch; the other
+    /// pixels stay independent draws), in (0, 1].
+    pub planar_share: f32,
     /// Non-finite steps: every rejected step (see [`crate::train::backend::StepStats::rejected`]) is
     /// skipped and counted; after `rejected_lr_after` rejected steps in a row (0 = never)
     /// every group's learning rate is multiplied by `rejected_lr_factor` (in (0, 1]).
@@ -190,6 +193,7 @@ impl MapperConfig {
             planar_edge: 10.0,
             planar_beta: 0.05,
             planar_spacing: 8,
+            planar_share: 1.0,
             rejected_lr_after: 3,
             rejected_lr_factor: 0.5,
             init_min_transmittance: 0.0,
@@ -291,6 +295,11 @@ impl MapperConfig {
         if !(ok(self.lambda_planar) && ok(self.planar_edge) && ok(self.planar_beta)) {
             return Err(Error::InvalidConfig(
                 "mapper: lambda_planar, planar_edge and planar_beta must be finite and >= 0",
+            ));
+        }
+        if !(self.planar_share > 0.0 && self.planar_share <= 1.0) {
+            return Err(Error::InvalidConfig(
+                "mapper: planar_share must be in (0, 1]",
             ));
         }
         if self.lambda_planar > 0.0
@@ -1003,16 +1012,23 @@ impl<'a, B: Backend> Mapper<'a, B> {
         self.sample_range(n_old, n, old_total as usize, new_total);
     }
 
-    /// Turns every complete triple of sampled pixels (items `3g..3g + 3`) into a planarity
-    /// triplet around its middle pixel: a spacing `s` in `1..=planar_spacing` and a row or a
+    /// Turns complete triples of sampled pixels (items `3g..3g + 3`; a `planar_share` of
+    /// them, spread evenly) into planarity triplets around their middle pixel: a spacing `s` in `1..=planar_spacing` and a row or a
     /// column drawn, the middle pixel moved inside the border by at least `s`, the outer two
     /// at `-s` and `+s` in the middle pixel's frame.
     fn make_triplets(&mut self) {
         let (w, h) = (self.k.width, self.k.height);
         let b = self.cfg.border;
         let total = self.cfg.pixels as usize;
+        let share = self.cfg.planar_share;
         let mut first = 0;
         while first + 3 <= total {
+            // triple g is a triplet when floor((g + 1) share) > floor(g share)
+            let g = (first / 3) as f32;
+            if ((g + 1.0) * share) as u32 == (g * share) as u32 {
+                first += 3;
+                continue;
+            }
             let mid = self.pixels[first + 1];
             let s = 1 + self.rng.below(self.cfg.planar_spacing);
             let row = self.rng.below(2) == 0;
@@ -1635,6 +1651,27 @@ mod tests {
         assert!(refused(bad));
         bad.planar_spacing = 0;
         assert!(refused(bad));
+        bad.planar_spacing = 4;
+        bad.planar_share = 0.0;
+        assert!(refused(bad));
+        // half the triples, every other one
+        let mut c = cfg();
+        c.lambda_planar = 0.1;
+        c.planar_share = 0.5;
+        let (mut px, mut res) = buffers();
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 20);
+        let line = |t: &[PixelSample]| crate::train::pixel::is_line_triplet(&[t[0], t[1], t[2]]);
+        let mut odd = 0;
+        for call in &m.backend().calls {
+            for (g, t) in call.pixels.chunks_exact(3).enumerate() {
+                if g % 2 == 1 {
+                    assert!(line(t), "{t:?}");
+                    odd += 1;
+                }
+            }
+        }
+        assert_eq!(odd, 10 * m.backend().calls.len());
     }
 
     #[test]

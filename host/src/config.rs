@@ -174,6 +174,7 @@ struct MapperDef {
     planar_edge: f32,
     planar_beta: f32,
     planar_spacing: u32,
+    planar_share: f32,
     rejected_lr_after: u32,
     rejected_lr_factor: f32,
     init_min_transmittance: f32,

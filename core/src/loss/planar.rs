@@ -22,8 +22,11 @@
 use super::smooth_l1;
 use crate::math;
 
-/// Depths below this (m) make a triplet invalid: the pixel rendered (almost) nothing.
-pub const MIN_DEPTH: f32 = 0.05;
+/// Depths below this (m) make a triplet invalid: the pixel rendered (almost) nothing, or its
+/// view collapsed onto the camera (as `mapper.depth_prior_near`: nothing is that close to a
+/// camera in free space). The gradient grows as `d_b / d_a^2`, so near-zero depths would
+/// dominate every other term.
+pub const MIN_DEPTH: f32 = 0.5;
 
 /// The prior's settings (see the module documentation).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -99,7 +102,13 @@ mod tests {
     /// Every plane gives zero: inverse depth affine along the line of pixels.
     #[test]
     fn planes_of_any_slant_give_no_loss() {
-        for (z0, dz) in [(2.0f32, 0.0f32), (2.0, 0.25), (1.0, -0.125), (4.0, 0.5)] {
+        for (z0, dz) in [
+            (1.0f32, 0.0f32),
+            (1.0, 0.25),
+            (0.5, 0.125),
+            (1.5, -0.25),
+            (0.25, 0.0625),
+        ] {
             // inverse depths z0 - dz, z0, z0 + dz (exact binary fractions)
             let depth = [1.0 / (z0 - dz), 1.0 / z0, 1.0 / (z0 + dz)];
             let (l, g) = planarity(depth, &GREY, &CFG);

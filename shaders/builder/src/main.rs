@@ -77,7 +77,7 @@ fn run(check: bool) -> Result<(), BoxError> {
     check_tool("spirv-opt")?;
     check_tool("spirv-val")?;
 
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let root = repository_root()?;
     let shader_crate = root.join("shaders");
     let builder = SpirvBuilder::new(&shader_crate, TARGET)
         .capability(Capability::Int64)
@@ -173,6 +173,30 @@ fn run(check: bool) -> Result<(), BoxError> {
     Ok(())
 }
 
+/// The checkout this tool runs for: `cargo run` gives the package's folder at run time (not
+/// `env!`: cargo shares one binary between checkouts with the same layout through a common
+/// target folder, and a path baked in at compile time would name another checkout); else
+/// the first folder up from the current one with `shaders/builder/Cargo.toml`.
+fn repository_root() -> Result<PathBuf, BoxError> {
+    if let Some(dir) = env::var_os("CARGO_MANIFEST_DIR") {
+        let root = PathBuf::from(dir).join("../..");
+        if root.join("shaders/builder/Cargo.toml").is_file() {
+            return Ok(root.canonicalize()?);
+        }
+    }
+    let mut dir = env::current_dir()?;
+    loop {
+        if dir.join("shaders/builder/Cargo.toml").is_file() {
+            return Ok(dir);
+        }
+        if !dir.pop() {
+            return Err(
+                "run this tool with `cargo run` in the repository's shaders/ folder".into(),
+            );
+        }
+    }
+}
+
 fn to_bytes(module: &Module) -> Vec<u8> {
     module
         .assemble()
@@ -217,7 +241,7 @@ fn check_toolchain() -> Result<(), BoxError> {
          rust-toolchain.toml selects it"
     );
     // the rustc the shader build will run (rustup picks shaders/rust-toolchain.toml there)
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
+    let dir = repository_root()?.join("shaders");
     let rustc = "rustc".to_string();
     let out = Command::new(&rustc)
         .current_dir(&dir)
