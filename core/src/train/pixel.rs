@@ -462,31 +462,44 @@ mod tests {
         assert_eq!(imgs.texel(0, 1, 2), [0.0, 0.0, 0.0]);
     }
 
+    /// A one-frame window over `px` (`w x h`, slot 0) seen by the identity camera with focal
+    /// `w / 2` and the principal point at the centre.
+    fn one_frame<'a>(
+        w: u32,
+        h: u32,
+        px: &'a [u32],
+        poses: &'a [Pose],
+        imgs: &'a mut Option<WindowImages<'a, [u32]>>,
+    ) -> WindowView<'a, WindowImages<'a, [u32]>> {
+        let imgs = imgs.insert(WindowImages {
+            width: w,
+            height: h,
+            slots: [0u32; MAX_WINDOW],
+            pixels: px,
+        });
+        WindowView {
+            k: Intrinsics {
+                width: w,
+                height: h,
+                fx: 0.5 * w as f32,
+                fy: 0.5 * w as f32,
+                cx: 0.5 * (w - 1) as f32,
+                cy: 0.5 * (h - 1) as f32,
+            },
+            poses,
+            images: imgs,
+        }
+    }
+
     /// The depth prior acts on every pixel without `depth_prior_near`, and with it only on the
     /// pixels rendered closer than it: hand-computed smooth-L1 cotangents.
     #[test]
     fn depth_prior_near_gates_the_prior_by_the_rendered_depth() {
         let (w, h) = (4u32, 3u32);
         let px = std::vec![0u32; (w * h) as usize];
-        let imgs = WindowImages {
-            width: w,
-            height: h,
-            slots: [0u32; MAX_WINDOW],
-            pixels: &px[..],
-        };
         let poses = [Pose::IDENTITY];
-        let window = WindowView {
-            k: Intrinsics {
-                width: w,
-                height: h,
-                fx: 2.0,
-                fy: 2.0,
-                cx: 1.5,
-                cy: 1.0,
-            },
-            poses: &poses[..],
-            images: &imgs,
-        };
+        let mut imgs = None;
+        let window = one_frame(w, h, &px, &poses, &mut imgs);
         let mut loss = MappingLoss {
             lambda_color: 0.0,
             lambda_warp: 0.0,
@@ -528,25 +541,9 @@ mod tests {
     fn planarity_gives_each_member_its_component() {
         let (w, h) = (8u32, 6u32);
         let px = std::vec![0xff80_8080u32; (w * h) as usize];
-        let imgs = WindowImages {
-            width: w,
-            height: h,
-            slots: [0u32; MAX_WINDOW],
-            pixels: &px[..],
-        };
         let poses = [Pose::IDENTITY];
-        let window = WindowView {
-            k: Intrinsics {
-                width: w,
-                height: h,
-                fx: 4.0,
-                fy: 4.0,
-                cx: 3.5,
-                cy: 2.5,
-            },
-            poses: &poses[..],
-            images: &imgs,
-        };
+        let mut imgs = None;
+        let window = one_frame(w, h, &px, &poses, &mut imgs);
         let planar = PlanarConfig {
             weight: 2.0,
             edge: 10.0,
