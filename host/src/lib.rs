@@ -16,6 +16,7 @@ pub mod config;
 pub mod dump;
 pub mod geo_init;
 pub mod mapper_cli;
+pub mod query;
 pub mod select;
 pub mod train_demo;
 pub mod warp_check;

@@ -51,33 +51,7 @@ pub fn map_mesh<B: MapBackend>(
     resolution: f32,
     level: f32,
 ) -> anyhow::Result<crate::mesh::Mesh> {
-    let backend = std::cell::RefCell::new(backend);
-    let query_error = std::cell::RefCell::new(None::<anyhow::Error>);
-    let mesh = crate::mesh::extract_mesh(
-        aabb,
-        resolution,
-        |p: &[[f32; 3]]| {
-            let mut o = vec![0.0; p.len()];
-            if let Err(e) = backend.borrow_mut().query_sdf(p, &mut o) {
-                query_error.borrow_mut().get_or_insert(e);
-            }
-            for x in &mut o {
-                *x -= level;
-            }
-            o
-        },
-        Some(|p: &[[f32; 3]]| {
-            let mut o = vec![[0.0; 3]; p.len()];
-            if let Err(e) = backend.borrow_mut().query_color(p, &mut o) {
-                query_error.borrow_mut().get_or_insert(e);
-            }
-            o
-        }),
-    );
-    match query_error.into_inner() {
-        Some(e) => Err(e.context("querying the field for the mesh")),
-        None => Ok(mesh),
-    }
+    crate::query::region_mesh(backend, aabb, resolution, level)
 }
 
 /// Views of the pushed frames [`observed_views`] renders for the observed region.
