@@ -33,10 +33,29 @@ fn map_writes_all_outputs_and_the_loss_goes_down() {
     assert_eq!(s.updates, 2);
     assert_eq!(s.iterations, 40 + 3);
     assert_eq!(s.scene_box_source, "scene.json");
-    for f in ["metrics.csv", "summary.json", "mesh.ply", "map.safetensors"] {
+    for f in [
+        "metrics.csv",
+        "summary.json",
+        "mesh.ply",
+        "map.safetensors",
+        "metrics.png",
+        "report.html",
+    ] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
     assert!(std::fs::read_dir(out.join("renders")).unwrap().count() >= 1);
+    // the report shows the plots and every render strip
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(html.contains("src=\"metrics.png\""));
+    for e in std::fs::read_dir(out.join("renders")).unwrap() {
+        let name = e.unwrap().file_name().into_string().unwrap();
+        assert!(
+            html.contains(&format!("renders/{name}")),
+            "{name} not in the report"
+        );
+    }
+    let png = image::open(out.join("metrics.png")).unwrap();
+    assert_eq!((png.width(), png.height()), himap::mapper_cli::PLOT_SIZE);
     let csv = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
     assert_eq!(csv.lines().count(), 3);
     let init: Vec<&str> = csv.lines().nth(1).unwrap().split(',').collect();

@@ -1,6 +1,7 @@
 //! `himap map` and `himap demo`: replay a posed sequence through the core's [`Mapper`] on the
 //! multi-threaded CPU backend, evaluate after every mapping update, and write the outputs:
-//! `metrics.csv`, `summary.json`, `mesh.ply`, `renders/`, `map.safetensors`.
+//! `metrics.csv`, `summary.json`, `mesh.ply`, `renders/`, `map.safetensors`, `metrics.png`,
+//! `report.html`.
 //!
 //! Evaluation after an update renders the update's newest frame at `eval.scale` of the input
 //! resolution (bin-centre samples, no jitter) and compares it with the input image resized the
@@ -9,7 +10,8 @@
 //!
 //! Files: [`setup`] (backend, initial map, memory), [`run`] (the mapping loop), [`evaluate`]
 //! (per-update and final-map evaluation), [`surface`] (mesh level, observed region, mesh),
-//! [`report`] (metrics, log lines, renders, summary), [`persist`] (`map.safetensors`),
+//! [`report`] (metrics, log lines, renders, summary), [`plots`] (`metrics.png`,
+//! `report.html`), [`persist`] (`map.safetensors`),
 //! [`demo`].
 
 use std::collections::HashMap;
@@ -35,6 +37,7 @@ use crate::select::{decide, BackendChoice, MapBackend};
 mod demo;
 mod evaluate;
 mod persist;
+mod plots;
 mod report;
 mod run;
 mod setup;
@@ -43,6 +46,7 @@ mod surface;
 pub use demo::*;
 pub use evaluate::*;
 pub use persist::*;
+pub use plots::*;
 pub use report::*;
 use run::*;
 pub use setup::*;

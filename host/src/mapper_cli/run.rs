@@ -256,6 +256,11 @@ where
     };
     let sp = opts.out.join("summary.json");
     crate::atomic::write_bytes_atomic(&sp, serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    // The plots and the page are a view of what is already written: a failure there is
+    // reported, not fatal to the run.
+    if let Err(e) = write_report(&opts.out, &summary, rows) {
+        eprintln!("warning: metrics.png / report.html not written: {e:#}");
+    }
     Ok(summary)
 }
 
