@@ -11,14 +11,37 @@
 use glam::Vec3;
 
 /// Pinhole intrinsics of an image of `width` x `height` pixels.
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::camera::Intrinsics;
+///
+/// let k = Intrinsics { width: 640, height: 480, fx: 525.0, fy: 525.0, cx: 319.5, cy: 239.5 };
+/// // A point on the optical axis lands on the principal point.
+/// assert_eq!(k.project([0.0, 0.0, 2.0]), (319.5, 239.5, 2.0));
+/// // The ray through a pixel, scaled by a depth, projects back onto that pixel.
+/// let d = k.direction(100.0, 50.0);
+/// let (u, v, z) = k.project([d[0] * 3.0, d[1] * 3.0, d[2] * 3.0]);
+/// assert!((u - 100.0).abs() < 1e-3 && (v - 50.0).abs() < 1e-3 && z == 3.0);
+/// // Halving the resolution halves the focal length and keeps pixel centres on integers.
+/// let h = k.resized(320, 240);
+/// assert_eq!((h.fx, h.cx, h.cy), (262.5, 159.5, 119.5));
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Intrinsics {
+    /// Image width (pixels).
     pub width: u32,
+    /// Image height (pixels).
     pub height: u32,
+    /// Horizontal focal length (pixels).
     pub fx: f32,
+    /// Vertical focal length (pixels).
     pub fy: f32,
+    /// Principal point, horizontal coordinate (pixels; integer values are pixel centres).
     pub cx: f32,
+    /// Principal point, vertical coordinate (pixels; integer values are pixel centres).
     pub cy: f32,
 }
 
@@ -71,7 +94,9 @@ impl Intrinsics {
 /// Read access to a sequence of camera poses: a slice on the CPU, storage-buffer words on a
 /// GPU (which cannot build slices of local arrays). Past the end reads [`Pose::IDENTITY`].
 pub trait PoseRead {
+    /// Number of poses in the sequence.
     fn count(&self) -> usize;
+    /// Pose `i`, or [`Pose::IDENTITY`] when `i` is past the end.
     fn pose(&self, i: usize) -> Pose;
 }
 
@@ -92,13 +117,45 @@ impl PoseRead for [Pose] {
 }
 
 /// A rigid camera-to-world transform, stored as the top 3x4 of the row-major 4x4 matrix.
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::camera::{Intrinsics, Pose};
+///
+/// // Camera at (1, 2, 3) (metres), turned 90 degrees about the world y axis.
+/// let pose = Pose {
+///     m: [
+///         [0.0, 0.0, 1.0, 1.0],
+///         [0.0, 1.0, 0.0, 2.0],
+///         [-1.0, 0.0, 0.0, 3.0],
+///     ],
+/// };
+/// assert!(pose.is_rigid(1e-5));
+/// assert_eq!(pose.origin(), [1.0, 2.0, 3.0]);
+/// // The camera looks along its +z axis, which is world +x here.
+/// assert_eq!(pose.transform([0.0, 0.0, 2.0]), [3.0, 2.0, 3.0]);
+/// // World -> camera -> world is a round trip.
+/// let p = [0.5, -1.0, 4.0];
+/// assert_eq!(pose.transform(pose.inverse_transform(p)), p);
+/// // A point at depth t on the ray through a pixel projects back onto that pixel.
+/// let k = Intrinsics { width: 640, height: 480, fx: 525.0, fy: 525.0, cx: 319.5, cy: 239.5 };
+/// let (o, d) = pose.ray(&k, 100.0, 50.0);
+/// let t = 2.5;
+/// let world = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+/// let (u, v, z) = k.project(pose.inverse_transform(world));
+/// assert!((u - 100.0).abs() < 1e-3 && (v - 50.0).abs() < 1e-3 && (z - t).abs() < 1e-5);
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Pose {
+    /// Rows of `[R | t]`: `R` rotates camera axes into the world, `t` is the camera centre
+    /// (metres, world coordinates).
     pub m: [[f32; 4]; 3],
 }
 
 impl Pose {
+    /// The identity transform (camera frame = world frame).
     pub const IDENTITY: Pose = Pose {
         m: [
             [1.0, 0.0, 0.0, 0.0],

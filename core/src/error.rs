@@ -6,14 +6,20 @@
 pub enum Error {
     /// A fixed capacity would be exceeded: `what` needs `needed`, the capacity is `capacity`.
     Capacity {
+        /// What ran out of capacity.
         what: &'static str,
+        /// How many elements were needed.
         needed: u64,
+        /// How many fit.
         capacity: u64,
     },
     /// A caller-provided buffer has the wrong length.
     Shape {
+        /// Which buffer.
         what: &'static str,
+        /// The length it must have.
         expected: u64,
+        /// The length it has.
         got: u64,
     },
     /// A configuration value is out of its valid range.

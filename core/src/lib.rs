@@ -12,14 +12,13 @@
 //! - use plain arrays and slices with clamped indices, no recursion, no trait objects.
 #![cfg_attr(not(test), no_std)]
 #![deny(unsafe_code)]
+#![deny(missing_docs)]
 
 pub mod camera;
 pub mod error;
 pub mod field;
 pub mod gpu_abi;
 pub mod loss;
-/// The mapper keeps its frames in `heapless` vectors: host-side only (the shaders build the
-/// core without the feature).
 #[cfg(feature = "heapless")]
 pub mod mapper;
 pub mod math;
@@ -31,14 +30,32 @@ use field::mlp;
 use train::fixed;
 
 /// An axis-aligned box in world coordinates (metres).
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::Aabb;
+///
+/// let b = Aabb::new([-1.0, 0.0, 2.0], [1.0, 4.0, 3.0]);
+/// assert!(b.is_valid());
+/// assert_eq!(b.extent(), [2.0, 4.0, 1.0]);
+/// // The centre maps to 0, the corners to -1 and +1; outside points are clamped.
+/// assert_eq!(b.normalize([0.0, 2.0, 2.5]), [0.0, 0.0, 0.0]);
+/// assert_eq!(b.normalize([-1.0, 4.0, 10.0]), [-1.0, 1.0, 1.0]);
+/// // An empty box is not valid.
+/// assert!(!Aabb::new([0.0; 3], [0.0; 3]).is_valid());
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Aabb {
+    /// Minimum corner (metres).
     pub min: [f32; 3],
+    /// Maximum corner (metres).
     pub max: [f32; 3],
 }
 
 impl Aabb {
+    /// A box from its minimum and maximum corners (not checked: see [`Aabb::is_valid`]).
     pub const fn new(min: [f32; 3], max: [f32; 3]) -> Self {
         Self { min, max }
     }
@@ -82,6 +99,7 @@ impl Aabb {
 /// Read access to a flat parameter buffer. Implemented for `[f32]`; a GPU backend whose tensor
 /// is split over several storage buffers implements it over the parts.
 pub trait ParamRead {
+    /// Parameter `i` of the flat buffer.
     fn at(&self, i: usize) -> f32;
 
     /// The whole buffer as one slice, when it is one (host-side kernels that read rows of
@@ -144,6 +162,7 @@ impl ParamRead for [f32] {
 /// contribution; backends convert each one individually with [`fixed::to_fixed`] and add it
 /// to an `i64` buffer, so the sum is independent of order.
 pub trait GradSink {
+    /// Adds one gradient contribution `g` to parameter `i`.
     fn add(&mut self, i: usize, g: f32);
 
     /// `add(offset + i, g * xs[i])` for every `i < n` (one contribution each; a decoder
@@ -169,7 +188,24 @@ impl GradSink for NullSink {
 
 /// Accumulates contributions into a fixed-point `i64` slice. This is the reference
 /// accumulation the CPU backends use and the GPU reproduces with atomics.
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::train::fixed::from_fixed;
+/// use himap_core::{FixedSink, GradSink};
+///
+/// let mut acc = [0i64; 2];
+/// let mut sink = FixedSink { acc: &mut acc };
+/// sink.add(0, 0.25);
+/// sink.add(0, -1.0);
+/// sink.add(1, 2.0);
+/// sink.add(7, 1.0); // past the end: dropped
+/// assert_eq!(acc.map(from_fixed), [-0.75, 2.0]);
+/// ```
 pub struct FixedSink<'a> {
+    /// Per-parameter gradient sums in fixed point ([`fixed::to_fixed`]); contributions to
+    /// indices past its end are dropped.
     pub acc: &'a mut [i64],
 }
 
@@ -185,6 +221,7 @@ impl GradSink for FixedSink<'_> {
 /// Accumulates contributions in plain `f32` (tests and finite-difference checks only: the
 /// result depends on the order of the additions).
 pub struct F32Sink<'a> {
+    /// Per-parameter gradient sums; contributions to indices past its end are dropped.
     pub acc: &'a mut [f32],
 }
 

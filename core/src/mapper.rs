@@ -7,16 +7,16 @@
 //!
 //! - Frames are pushed one at a time ([`Mapper::push_frame`]); each gets the next frame id
 //!   (0, 1, ...) and an image slot in the backend.
-//! - **Initialisation**: when `init_frames` [15] frames have been pushed, `init_iters` [1500]
-//!   iterations run on a window of exactly those frames, with `lambda_color_init` [0.1]; the
-//!   colour loss reaches the geometry only during the first `init_color_iters` [250]
+//! - **Initialisation**: when `init_frames` \[15\] frames have been pushed, `init_iters` \[1500\]
+//!   iterations run on a window of exactly those frames, with `lambda_color_init` \[0.1\]; the
+//!   colour loss reaches the geometry only during the first `init_color_iters` \[250\]
 //!   iterations (detached rendering weights afterwards).
-//! - **Online updates**: after every `update_every` [5] further frames, the local set is cut
-//!   back to the `local_frames` [15] most recent frames: of the frames leaving it, the oldest
+//! - **Online updates**: after every `update_every` \[5\] further frames, the local set is cut
+//!   back to the `local_frames` \[15\] most recent frames: of the frames leaving it, the oldest
 //!   joins the keyframe cache and the others are dropped (their slots are freed). Then up to
-//!   `window_keyframes` [5] keyframes are chosen from the cache by view overlap with the newest
-//!   frame (below) and `iters` [20] iterations run on window = chosen keyframes (oldest first)
-//!   + local frames (oldest first), colour weight `lambda_color` [0.001], detached colour.
+//!   `window_keyframes` \[5\] keyframes are chosen from the cache by view overlap with the newest
+//!   frame (below) and `iters` \[20\] iterations run on window = chosen keyframes (oldest first)
+//!   + local frames (oldest first), colour weight `lambda_color` \[0.001\], detached colour.
 //! - **Keyframe cache full** (`max_keyframes`): [`KeyframeOverflow::Thin`] drops every other
 //!   keyframe (keeps cache indices 0, 2, 4, ...: the cache keeps covering the whole
 //!   trajectory at half the density), [`KeyframeOverflow::DropOldest`] drops the oldest.
@@ -25,13 +25,13 @@
 //!
 //! # Keyframe overlap (NICE-SLAM's selection, with rendered instead of sensor depth)
 //!
-//! `overlap_pixels` [100] random pixels of the newest frame are rendered (bin centres, no
-//! jitter); for each with positive opacity and depth `D`, `overlap_points` [16] points evenly
+//! `overlap_pixels` \[100\] random pixels of the newest frame are rendered (bin centres, no
+//! jitter); for each with positive opacity and depth `D`, `overlap_points` \[16\] points evenly
 //! spaced on camera depth `[0.8 D, D + 0.5 m]` are back-projected. A keyframe's overlap is the
-//! fraction of these points in front of it and projecting more than `overlap_margin` [20] px
+//! fraction of these points in front of it and projecting more than `overlap_margin` \[20\] px
 //! inside its image. Keyframes with overlap > 0 are candidates; `window_keyframes` of them are
 //! drawn uniformly at random without replacement (all when fewer). Then `global_keyframes`
-//! [0] more are drawn uniformly from the rest of the cache, whatever their overlap: the
+//! \[0\] more are drawn uniformly from the rest of the cache, whatever their overlap: the
 //! regions the camera has left keep receiving gradients (their colour term at least; their
 //! warp pairs with the window are mostly invalid and masked).
 //!
@@ -47,9 +47,12 @@
 //! Online, `new_frame_share` (0 = off, the paper's even spread) gives the frames that arrived
 //! since the last update (the last `min(pending, window)` window frames) that fraction of the
 //! pixels (rounded, at least one per frame on each side), spread evenly over them as above;
-//! the other window frames share the rest evenly, unless `keyframe_share` [0] gives the
+//! the other window frames share the rest evenly, unless `keyframe_share` \[0\] gives the
 //! window's keyframes that fraction of the pixels (rounded, at least one per keyframe, the
 //! older local frames the rest). The initialisation always spreads evenly.
+//!
+//! The mapper keeps its frames in `heapless` vectors: host-side only (the shaders build the
+//! core without the feature).
 
 use crate::camera::{Intrinsics, Pose};
 use crate::field::model::{Group, Ray, RayResult};
@@ -78,6 +81,29 @@ pub enum KeyframeOverflow {
 }
 
 /// Every setting of the mapper. [`MapperConfig::paper`] gives the paper's values.
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::mapper::MapperConfig;
+/// use himap_core::train::backend::ImageStore;
+/// use himap_core::Error;
+///
+/// let cfg = MapperConfig::paper(1024);
+/// assert_eq!((cfg.local_frames, cfg.window_keyframes, cfg.iters), (15, 5, 20));
+/// // Local set (15) + pending frames (5) + keyframe cache (512).
+/// assert_eq!(cfg.slots_needed(), 532);
+///
+/// // The backend's image store must be large enough for the schedule.
+/// let store = ImageStore { width: 640, height: 480, slots: cfg.slots_needed() };
+/// assert_eq!(cfg.validate(&store), Ok(()));
+/// let small = ImageStore { slots: 16, ..store };
+/// assert!(matches!(cfg.validate(&small), Err(Error::Capacity { .. })));
+///
+/// // Out-of-range settings are errors.
+/// let bad = MapperConfig { pixels: 0, ..cfg };
+/// assert!(matches!(bad.validate(&store), Err(Error::InvalidConfig(_))));
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MapperConfig {
     /// Most recent frames in the window (15).
@@ -113,9 +139,12 @@ pub struct MapperConfig {
     pub lambda_color: f32,
     /// Warping-loss weight (1.0).
     pub lambda_warp: f32,
+    /// Settings of DIM-SLAM's warping loss (patch half-size, margin, minimum valid views,
+    /// weights).
     pub warp: WarpConfig,
     /// Keyframe cache capacity (<= [`MAX_KEYFRAMES`]).
     pub max_keyframes: u32,
+    /// What happens when a frame joins a full keyframe cache ([`KeyframeOverflow::Thin`]).
     pub keyframe_overflow: KeyframeOverflow,
     /// Rendered pixels of the overlap test (100, <= [`MAX_OVERLAP_PIXELS`]).
     pub overlap_pixels: u32,
@@ -128,20 +157,26 @@ pub struct MapperConfig {
     /// DIM-SLAM's depth prior during the first `depth_prior_iters` initialisation iterations:
     /// weight (per pixel, averaged like the colour term; 0 = off) and target depth (metres).
     pub lambda_depth_prior: f32,
+    /// Target depth of the depth prior (camera z, metres; 1.5).
     pub depth_prior: f32,
+    /// Initialisation iterations that use `lambda_depth_prior` on every pixel (150).
     pub depth_prior_iters: u32,
     /// After those iterations (online updates included): the same prior with this weight on
     /// the pixels whose rendered depth is below `depth_prior_near` (m), so that a view
     /// collapsed onto the camera in newly explored space gets a plausible start (0 = off).
     pub lambda_depth_prior_online: f32,
+    /// Rendered depth (camera z, metres) below which `lambda_depth_prior_online` acts (0.5).
     pub depth_prior_near: f32,
     /// The edge-aware planarity prior on the rendered depth (see [`crate::loss::planar`]):
     /// weight per pixel, averaged like the colour term (0 = off), edge sensitivity and
     /// smooth-L1 threshold. When on, the sampled pixels come in triplets `b - s`, `b`,
     /// `b + s` along a row or a column of one frame, `s` drawn in `1..=planar_spacing` px.
     pub lambda_planar: f32,
+    /// Edge sensitivity of the planarity prior ([`PlanarConfig::edge`]).
     pub planar_edge: f32,
+    /// Smooth-L1 threshold of the planarity prior ([`PlanarConfig::beta`]).
     pub planar_beta: f32,
+    /// Largest pixel spacing `s` of a planarity triplet (px, >= 1 when the prior is on).
     pub planar_spacing: u32,
     /// Share of the batch's triples made triplets (spread evenly over the batch; the other
     /// pixels stay independent draws), in (0, 1].
@@ -150,6 +185,8 @@ pub struct MapperConfig {
     /// skipped and counted; after `rejected_lr_after` rejected steps in a row (0 = never)
     /// every group's learning rate is multiplied by `rejected_lr_factor` (in (0, 1]).
     pub rejected_lr_after: u32,
+    /// Factor applied to every group's learning rate after `rejected_lr_after` rejected steps
+    /// in a row (in (0, 1]).
     pub rejected_lr_factor: f32,
     /// Early-termination threshold during the initialisation (0 = none); online updates use
     /// the model's own `min_transmittance`. Without termination the samples behind the
@@ -336,7 +373,9 @@ impl MapperConfig {
 /// Mapper errors: its own (capacities, configuration, bad input) or the backend's.
 #[derive(Debug)]
 pub enum MapperError<E> {
+    /// The mapper's own error (capacity, configuration or bad input).
     Core(Error),
+    /// The backend's error.
     Backend(E),
 }
 
@@ -360,20 +399,26 @@ impl<E: core::fmt::Debug + core::fmt::Display> core::error::Error for MapperErro
 /// Which kind of optimisation an update was.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum UpdateKind {
+    /// The initialisation on the first `init_frames` frames.
     Init,
+    /// An online update of the sliding window.
     Online,
 }
 
 /// Progress of one iteration (passed to the observer of [`Mapper::push_frame_observed`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct IterInfo {
+    /// The update this iteration belongs to.
     pub kind: UpdateKind,
     /// Iteration within this update (0-based) and the update's total.
     pub iter: u32,
+    /// Iterations of this update.
     pub iters: u32,
     /// Total loss, and its colour and warp parts (each averaged over the pixels, weighted).
     pub loss: f32,
+    /// Colour part of the loss (averaged over the pixels, weighted; includes the priors).
     pub color_loss: f32,
+    /// Warp part of the loss (averaged over the pixels, weighted).
     pub warp_loss: f32,
     /// Fraction of sampled pixels with a valid warp term.
     pub warp_valid: f32,
@@ -389,32 +434,42 @@ pub struct IterInfo {
     /// their pixels with a valid warp term. A low valid share means the newest geometry is
     /// not yet constrained by enough views (the update cannot place it, whatever the loss).
     pub new_loss_ratio: f32,
+    /// Share of the new frames' sampled pixels with a valid warp term (see
+    /// `new_loss_ratio`).
     pub new_warp_valid: f32,
 }
 
 /// What one mapping update did.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct UpdateReport {
+    /// Initialisation or online update.
     pub kind: UpdateKind,
     /// Id of the newest frame (the "current" frame of the update).
     pub frame: u32,
+    /// Iterations run.
     pub iters: u32,
     /// Loss of the first and the last iteration.
     pub first: IterInfo,
+    /// The last iteration.
     pub last: IterInfo,
     /// Frames in the window, of which keyframes.
     pub window_frames: u32,
+    /// Keyframes in the window.
     pub window_keyframes: u32,
     /// Keyframes with overlap > 0 (candidates), and the cache size.
     pub candidates: u32,
+    /// Keyframes in the cache after the update.
     pub keyframes: u32,
 }
 
 /// A frame the mapper holds: its id (push order), its image slot in the backend and its pose.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct HeldFrame {
+    /// Frame id (0, 1, ... in push order).
     pub id: u32,
+    /// Image slot of the frame in the backend.
     pub slot: u32,
+    /// Camera-to-world pose.
     pub pose: Pose,
 }
 
@@ -429,16 +484,23 @@ pub const MAX_SLOTS: usize = MAX_LOCAL + MAX_KEYFRAMES;
 pub struct MapperState {
     /// Local frames (oldest first) and the keyframe cache (oldest first).
     pub local: Vec<HeldFrame, MAX_LOCAL>,
+    /// The keyframe cache (oldest first).
     pub keyframes: Vec<HeldFrame, MAX_KEYFRAMES>,
     /// Frames pushed since the last update.
     pub pending: usize,
     /// Free image slots (a stack: the last is handed out next).
     pub free: Vec<u32, MAX_SLOTS>,
+    /// Whether the initialisation has run.
     pub initialized: bool,
+    /// Frames pushed so far (the next frame's id).
     pub pushed: u32,
+    /// Mapping iterations run so far.
     pub total_iters: u32,
+    /// Steps rejected as non-finite so far.
     pub rejected_steps: u32,
+    /// Rejected steps in a row (reset by an accepted step and by a learning-rate reduction).
     pub rejected_run: u32,
+    /// Times the learning rates were lowered after rejected steps.
     pub lr_reductions: u32,
     /// [`SplitMix::state`] of the sampling generator.
     pub rng: u64,
@@ -568,22 +630,27 @@ impl<'a, B: Backend> Mapper<'a, B> {
         Ok(m)
     }
 
+    /// The backend.
     pub fn backend(&self) -> &B {
         &self.backend
     }
 
+    /// The backend, mutably.
     pub fn backend_mut(&mut self) -> &mut B {
         &mut self.backend
     }
 
+    /// Consumes the mapper and returns its backend.
     pub fn into_backend(self) -> B {
         self.backend
     }
 
+    /// The mapper's settings.
     pub fn config(&self) -> &MapperConfig {
         &self.cfg
     }
 
+    /// The intrinsics of every frame.
     pub fn intrinsics(&self) -> Intrinsics {
         self.k
     }

@@ -31,12 +31,30 @@ pub fn normal(seed: u32, a: u32, b: u32) -> f32 {
 }
 
 /// A small sequential generator for host-side sampling decisions (pixels, keyframes).
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::rng::SplitMix;
+///
+/// let mut a = SplitMix::new(42);
+/// let i = a.below(10);
+/// assert!(i < 10);
+/// let x = a.unit();
+/// assert!((0.0..1.0).contains(&x));
+/// // The same seed gives the same sequence, and the state resumes it.
+/// let mut b = SplitMix::new(42);
+/// assert_eq!((b.below(10), b.unit()), (i, x));
+/// let mut c = SplitMix::new(a.state());
+/// assert_eq!(c.next_u64(), a.next_u64());
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct SplitMix {
     state: u64,
 }
 
 impl SplitMix {
+    /// A generator starting from `seed` (any value).
     pub const fn new(seed: u64) -> Self {
         Self { state: seed }
     }
@@ -46,6 +64,7 @@ impl SplitMix {
         self.state
     }
 
+    /// The next 64 random bits (SplitMix64).
     pub fn next_u64(&mut self) -> u64 {
         self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
         let mut z = self.state;

@@ -22,10 +22,16 @@ use crate::{Aabb, Error, GradSink, ParamRead};
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[repr(u32)]
 pub enum Group {
+    /// The geometry feature grid `F_g`.
     GeometryGrid = 0,
+    /// The appearance feature grid `F_a`.
     AppearanceGrid = 1,
+    /// The geometry decoder `MLP_g` (features to signed distance).
     GeometryMlp = 2,
+    /// The appearance decoder `MLP_a` (features, and the position with the dual path, to
+    /// colour).
     AppearanceMlp = 3,
+    /// The SDF-to-density sharpness beta (one value).
     Beta = 4,
 }
 
@@ -33,6 +39,7 @@ pub enum Group {
 pub const NUM_GROUPS: usize = 5;
 
 impl Group {
+    /// Every group, in buffer order.
     pub const ALL: [Group; NUM_GROUPS] = [
         Group::GeometryGrid,
         Group::AppearanceGrid,
@@ -56,6 +63,18 @@ impl Group {
 /// One value per parameter group, indexed by [`Group`] (`x[Group::Beta]`) instead of a bare
 /// number. Dereferences to the array in [`Group::ALL`] order for iteration and for the code
 /// that walks every group alike.
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::field::model::{Group, PerGroup};
+///
+/// let mut lr = PerGroup::from_fn(|g| if g == Group::Beta { 1e-3 } else { 1e-2 });
+/// lr[Group::GeometryGrid] = 0.05;
+/// assert_eq!(lr[Group::Beta], 1e-3);
+/// assert_eq!(lr[0], 0.05); // by position in `Group::ALL`
+/// assert_eq!(lr.iter_groups().count(), 5);
+/// ```
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub struct PerGroup<T>(pub [T; NUM_GROUPS]);
 
@@ -123,11 +142,63 @@ impl<T> From<[T; NUM_GROUPS]> for PerGroup<T> {
 }
 
 /// Everything that fixes the shape and behaviour of the field.
+///
+/// # Examples
+///
+/// Build the paper's field over a 1 m cube, initialise its parameters and evaluate it at a
+/// point:
+///
+/// ```rust
+/// use himap_core::field::model::{
+///     color_at, sdf_at, Group, ModelConfig, ModelLayout, Params, SampleScratch,
+/// };
+/// use himap_core::Aabb;
+///
+/// let mut config = ModelConfig::paper(Aabb::new([0.0; 3], [1.0; 3]));
+/// let layout = ModelLayout::new(&config).unwrap();
+/// // One flat buffer per parameter group, initialised deterministically from a seed.
+/// let init = |layout: &ModelLayout| -> Vec<Vec<f32>> {
+///     Group::ALL
+///         .iter()
+///         .map(|&g| {
+///             let mut v = vec![0.0; layout.group_len(g)];
+///             layout.init_group(g, &mut v, 7).unwrap();
+///             v
+///         })
+///         .collect()
+/// };
+/// let p = init(&layout);
+/// assert_eq!(p.iter().map(Vec::len).sum::<usize>(), layout.param_count());
+/// assert_eq!(p[Group::Beta as usize], [10.0]);
+/// let params = Params {
+///     geometry_grid: &p[0][..],
+///     appearance_grid: &p[1][..],
+///     geometry_mlp: &p[2][..],
+///     appearance_mlp: &p[3][..],
+///     beta: p[4][0],
+/// };
+/// let mut scratch = SampleScratch::new();
+/// let x = [0.3, 0.5, 0.7];
+/// let sdf = sdf_at(&layout, &params, x, &mut scratch);
+/// assert!(sdf.is_finite());
+/// let rgb = color_at(&layout, &params, x, &mut scratch);
+/// assert!(rgb.iter().all(|c| (0.0..=1.0).contains(c)));
+///
+/// // `sdf_bias_init` shifts the initial signed distance (metres) towards free space.
+/// config.sdf_bias_init = 0.5;
+/// let biased = ModelLayout::new(&config).unwrap();
+/// let q = init(&biased);
+/// let params = Params { geometry_mlp: &q[2][..], ..params };
+/// let shifted = sdf_at(&biased, &params, x, &mut scratch);
+/// assert!((shifted - sdf - 0.5).abs() < 1e-5);
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ModelConfig {
     /// Scene box in world coordinates (metres).
     pub aabb: Aabb,
+    /// Levels, channels and cell sizes of the geometry grid.
     pub geometry_grid: GridConfig,
+    /// Levels, channels and cell sizes of the appearance grid.
     pub appearance_grid: GridConfig,
     /// Hidden units per decoder layer (paper: 32).
     pub hidden: u32,
@@ -135,6 +206,7 @@ pub struct ModelConfig {
     pub hidden_layers: u32,
     /// Dual path: the appearance decoder also sees the normalised position.
     pub dual_path: bool,
+    /// How per-sample SDF values become rendering weights (Hi-Map: [`RenderMode::SdfDensity`]).
     pub render_mode: RenderMode,
     /// Samples per ray (stratified on [near, far] of the ray's box intersection).
     pub samples: u32,
@@ -180,12 +252,38 @@ impl ModelConfig {
 }
 
 /// The shapes and offsets of all parameter groups.
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::field::model::{Group, ModelConfig, ModelLayout, NUM_GROUPS};
+/// use himap_core::{Aabb, Error};
+///
+/// let config = ModelConfig::paper(Aabb::new([-1.0; 3], [1.0; 3]));
+/// let layout = ModelLayout::new(&config).unwrap();
+/// // Geometry decoder: grid features in, one signed distance out; appearance decoder: the
+/// // normalised position (dual path) and the grid features in, RGB out.
+/// assert_eq!(layout.geometry_mlp.n_out, 1);
+/// assert_eq!(layout.appearance_mlp.n_in as usize, 3 + layout.appearance_grid.feature_dim());
+/// assert_eq!(layout.group_len(Group::Beta), 1);
+/// assert_eq!(layout.group_lens().len(), NUM_GROUPS);
+/// assert_eq!(layout.group_lens().iter().sum::<usize>(), layout.param_count());
+///
+/// // Invalid configurations are errors, not panics.
+/// let empty = ModelConfig::paper(Aabb::new([0.0; 3], [0.0; 3]));
+/// assert!(matches!(ModelLayout::new(&empty), Err(Error::InvalidConfig(_))));
+/// ```
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ModelLayout {
+    /// The configuration the layouts were built from.
     pub config: ModelConfig,
+    /// Layout of the geometry grid (group [`Group::GeometryGrid`]).
     pub geometry_grid: GridLayout,
+    /// Layout of the appearance grid (group [`Group::AppearanceGrid`]).
     pub appearance_grid: GridLayout,
+    /// Layout of the geometry decoder (group [`Group::GeometryMlp`]).
     pub geometry_mlp: MlpLayout,
+    /// Layout of the appearance decoder (group [`Group::AppearanceMlp`]).
     pub appearance_mlp: MlpLayout,
 }
 
@@ -329,10 +427,15 @@ impl ModelLayout {
 
 /// Read access to the five parameter groups (beta is group 4, one value).
 pub struct Params<'a, P: ParamRead + ?Sized> {
+    /// Group [`Group::GeometryGrid`].
     pub geometry_grid: &'a P,
+    /// Group [`Group::AppearanceGrid`].
     pub appearance_grid: &'a P,
+    /// Group [`Group::GeometryMlp`].
     pub geometry_mlp: &'a P,
+    /// Group [`Group::AppearanceMlp`].
     pub appearance_mlp: &'a P,
+    /// Group [`Group::Beta`]: the SDF-to-density sharpness.
     pub beta: f32,
 }
 
@@ -342,6 +445,7 @@ pub trait ModelGradSink {
     /// gradient rows one sample ahead; sinks without caches leave it false and pay nothing).
     const PREFETCH: bool = false;
 
+    /// Adds one gradient contribution `g` to parameter `i` of `group`.
     fn add(&mut self, group: Group, i: usize, g: f32);
 
     /// A cache hint: contributions to `group` from `offset` on will follow soon. It changes no
@@ -364,7 +468,9 @@ pub trait ModelGradSink {
 
 /// Adapts a [`ModelGradSink`] to one group's [`GradSink`].
 pub struct GroupSink<'s, S: ModelGradSink> {
+    /// The sink of all groups.
     pub inner: &'s mut S,
+    /// The group every contribution goes to.
     pub group: Group,
 }
 
@@ -390,7 +496,9 @@ impl ModelGradSink for crate::NullSink {
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[repr(C)]
 pub struct Ray {
+    /// Origin (the camera centre; world coordinates, metres).
     pub origin: [f32; 3],
+    /// Direction in world coordinates, not normalised (camera-z component 1).
     pub dir: [f32; 3],
     /// Target colour in [0, 1].
     pub target: [f32; 3],
@@ -400,14 +508,21 @@ pub struct Ray {
 
 /// Per-ray samples and field values produced by [`ray_forward`].
 pub struct RayCache {
+    /// Samples in use (0 when the ray misses the box; fewer than the ray's samples after an
+    /// early termination).
     pub n: usize,
+    /// Depth of each sample along the ray (the ray parameter: camera z, metres).
     pub t: [f32; MAX_SAMPLES],
+    /// Signed distance at each sample (metres).
     pub sdf: [f32; MAX_SAMPLES],
+    /// Colour at each sample (RGB in [0, 1]).
     pub rgb: [[f32; 3]; MAX_SAMPLES],
+    /// The composited colour, depth, opacity and per-sample weights.
     pub out: RayOutput,
 }
 
 impl RayCache {
+    /// An empty cache (no samples, all zeros).
     pub const fn new() -> Self {
         Self {
             n: 0,
@@ -427,14 +542,20 @@ impl Default for RayCache {
 
 /// Scratch space for one sample's evaluation.
 pub struct SampleScratch {
+    /// Geometry grid features of the last evaluated point.
     pub geo_feat: [f32; MAX_GRID_FEATURES],
+    /// Appearance grid features of the last evaluated point.
     pub app_feat: [f32; MAX_GRID_FEATURES],
+    /// Input of the last decoder run.
     pub mlp_in: [f32; MAX_WIDTH],
+    /// Activations of the last decoder run.
     pub mlp: MlpScratch,
+    /// Outputs of the last decoder run.
     pub mlp_out: [f32; MAX_OUT],
 }
 
 impl SampleScratch {
+    /// All-zero scratch.
     pub const fn new() -> Self {
         Self {
             geo_feat: [0.0; MAX_GRID_FEATURES],
@@ -931,9 +1052,13 @@ impl SampleTape for Recompute {
 /// [`mlp::mlp_forward_transposed`] on `geometry_wt` / `appearance_wt`, the decoders' weights
 /// as [`mlp::transpose_weights`] lays them out (same bits as [`mlp::mlp_forward`]).
 pub struct StoredTape<'a> {
+    /// Geometry decoder activations, one entry per sample.
     pub geometry: &'a mut [MlpScratch],
+    /// Appearance decoder activations, one entry per sample.
     pub appearance: &'a mut [MlpScratch],
+    /// The geometry decoder's weights, transposed ([`mlp::transpose_weights`]).
     pub geometry_wt: &'a [f32],
+    /// The appearance decoder's weights, transposed ([`mlp::transpose_weights`]).
     pub appearance_wt: &'a [f32],
 }
 
@@ -1120,8 +1245,11 @@ pub struct LossConfig {
 /// What one training ray produced.
 #[derive(Clone, Copy, Debug, PartialEq, Default)]
 pub struct RayResult {
+    /// Rendered colour (RGB in [0, 1]).
     pub color: [f32; 3],
+    /// Rendered depth (camera z, metres).
     pub depth: f32,
+    /// Rendered opacity (sum of the rendering weights).
     pub opacity: f32,
     /// This ray's scaled loss contribution.
     pub loss: f32,

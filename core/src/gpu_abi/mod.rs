@@ -98,7 +98,9 @@ pub struct KernelPush {
     pub n: u32,
     /// The seed (`probe_cs`) or the bucket count (`fixed_accumulate_cs`); unused otherwise.
     pub arg: u32,
+    /// Padding (unused, pushed as 0).
     pub _pad0: u32,
+    /// Padding (unused, pushed as 0).
     pub _pad1: u32,
 }
 
@@ -109,9 +111,11 @@ pub struct KernelPush {
 pub struct RangePush {
     /// Items in this dispatch; invocation `i` handles item `first + i`.
     pub n: u32,
+    /// Batch index of the dispatch's first item.
     pub first: u32,
     /// Items in the whole batch (the mapping pass's planarity triplets need it; 0 elsewhere).
     pub total: u32,
+    /// Padding (unused, pushed as 0).
     pub _pad1: u32,
 }
 
@@ -121,6 +125,7 @@ pub struct RangePush {
 pub struct SamplePush {
     /// Sample records in this dispatch; invocation `i` handles record `first + i`.
     pub n: u32,
+    /// Index of the dispatch's first sample record.
     pub first: u32,
     /// Stratified jitter seed.
     pub seed: u32,
@@ -136,13 +141,19 @@ pub struct TrainPush {
     /// Rays in this dispatch; invocation `i` handles ray `first + i` (the ray's id for the
     /// stratified jitter).
     pub n: u32,
+    /// Index of the dispatch's first ray.
     pub first: u32,
+    /// `LossConfig::seed`: the step's stratified jitter seed.
     pub seed: u32,
     /// `LossConfig::color_to_geometry` as 0 / 1.
     pub color_to_geometry: u32,
+    /// `LossConfig::lambda_color`.
     pub lambda_color: f32,
+    /// `LossConfig::lambda_depth`.
     pub lambda_depth: f32,
+    /// `LossConfig::ray_scale`.
     pub ray_scale: f32,
+    /// Padding (unused, pushed as 0).
     pub _pad: u32,
 }
 
@@ -153,7 +164,9 @@ pub struct TrainPush {
 pub struct AdamPush {
     /// Parameters in this dispatch; invocation `i` updates parameter `first + i`.
     pub n: u32,
+    /// Index of the dispatch's first parameter in the group.
     pub first: u32,
+    /// The step's Adam scalars (learning rate, betas, epsilon, bias corrections).
     pub step: crate::train::adam::AdamStep,
 }
 
@@ -163,14 +176,19 @@ pub struct AdamPush {
 pub struct LossCheckPush {
     /// Records in this dispatch; invocation `i` checks record `first + i`.
     pub n: u32,
+    /// Index of the dispatch's first record.
     pub first: u32,
     /// Floats per record ([`RESULT_FLOATS`] or [`PIXEL_RESULT_FLOATS`]).
     pub stride: u32,
     /// The two loss fields' offsets in a record (the same twice for a single loss).
     pub loss_a: u32,
+    /// Offset of the second loss field (equal to `loss_a` for a single loss).
     pub loss_b: u32,
+    /// Padding (unused, pushed as 0).
     pub _pad0: u32,
+    /// Padding (unused, pushed as 0).
     pub _pad1: u32,
+    /// Padding (unused, pushed as 0).
     pub _pad2: u32,
 }
 
@@ -180,6 +198,7 @@ pub const MAX_PUSH_WORDS: usize = 8;
 /// A push-constant block as the words the host pushes (unused trailing words 0; the first
 /// `size_of::<Self>()` bytes are pushed).
 pub trait PushWords: Copy {
+    /// The block's fields as `u32` words (floats by their bits), in declaration order.
     fn words(&self) -> [u32; MAX_PUSH_WORDS];
 }
 
@@ -261,8 +280,11 @@ const _: () = {
 /// 0 (bindings `0..bindings`) and the bytes of its push-constant block.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct EntryPoint {
+    /// Entry point name in the SPIR-V module.
     pub name: &'static str,
+    /// Storage buffers of descriptor set 0 (bindings `0..bindings`).
     pub bindings: u32,
+    /// Size of the push-constant block (bytes).
     pub push_size: u32,
 }
 
@@ -281,11 +303,16 @@ impl EntryPoint {
 pub mod entry {
     use super::*;
 
+    /// Toolchain probe: scene words, output.
     pub const PROBE: EntryPoint = EntryPoint::new("probe_cs", 2, size_of::<KernelPush>());
+    /// Fixed-point atomic accumulation (`acc[i % buckets] += to_fixed(values[i])`): values,
+    /// `i64` accumulators.
     pub const FIXED_ACCUMULATE: EntryPoint =
         EntryPoint::new("fixed_accumulate_cs", 2, size_of::<KernelPush>());
+    /// MLP forward of many inputs: layout words, parameters, inputs, outputs.
     pub const MLP_FORWARD: EntryPoint =
         EntryPoint::new("mlp_forward_cs", 4, size_of::<KernelPush>());
+    /// Grid forward at many points: layout words, parameters, positions, features.
     pub const GRID_FORWARD: EntryPoint =
         EntryPoint::new("grid_forward_cs", 4, size_of::<KernelPush>());
     /// Model words, [`PARAM_BINDINGS`], rays, sample records.
@@ -294,6 +321,8 @@ pub mod entry {
         1 + PARAM_BINDINGS as u32 + 2,
         size_of::<SamplePush>(),
     );
+    /// Composite, loss and compositing backward of a training step's rays: model words,
+    /// beta, beta gradient, rays, sample records, results.
     pub const RAY_TRAIN: EntryPoint = EntryPoint::new("ray_train_cs", 6, size_of::<TrainPush>());
     /// Model words, [`PARAM_BINDINGS`], their gradients, rays, sample records.
     pub const SAMPLE_BACKWARD: EntryPoint = EntryPoint::new(
@@ -301,14 +330,22 @@ pub mod entry {
         1 + 2 * PARAM_BINDINGS as u32 + 2,
         size_of::<SamplePush>(),
     );
+    /// Composite of a render's rays: model words, beta, rays, sample records, results.
     pub const RAY_RENDER: EntryPoint = EntryPoint::new("ray_render_cs", 5, size_of::<RangePush>());
+    /// The camera ray of every sampled pixel of a mapping step: window words, pixels, image
+    /// slots, rays.
     pub const PIXEL_RAYS: EntryPoint = EntryPoint::new("pixel_rays_cs", 4, size_of::<RangePush>());
+    /// Composite, mapping loss and compositing backward of a mapping step's pixels: model
+    /// words, beta, beta gradient, window words, pixels, image slots, rays, sample records,
+    /// results.
     pub const PIXEL_TRAIN: EntryPoint =
         EntryPoint::new("pixel_train_cs", 9, size_of::<RangePush>());
     /// Parameters, both moments, gradient, status word.
     pub const ADAM: EntryPoint = EntryPoint::new("adam_cs", 5, size_of::<AdamPush>());
+    /// Counts non-finite losses: results, status word.
     pub const LOSS_CHECK: EntryPoint =
         EntryPoint::new("loss_check_cs", 2, size_of::<LossCheckPush>());
+    /// Counts parameters whose Adam update would not be finite: as [`ADAM`].
     pub const ADAM_CHECK: EntryPoint = EntryPoint::new("adam_check_cs", 5, size_of::<AdamPush>());
     /// Model words, [`PARAM_BINDINGS`], points, output.
     pub const SDF_QUERY: EntryPoint = EntryPoint::new(
@@ -316,6 +353,7 @@ pub mod entry {
         1 + PARAM_BINDINGS as u32 + 2,
         size_of::<RangePush>(),
     );
+    /// Model words, [`PARAM_BINDINGS`], points, output (3 floats per point).
     pub const COLOR_QUERY: EntryPoint = EntryPoint::new(
         "color_query_cs",
         1 + PARAM_BINDINGS as u32 + 2,

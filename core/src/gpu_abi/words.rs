@@ -100,6 +100,8 @@ fn put(w: &mut [u32], i: usize, v: u32) {
     }
 }
 
+/// Decodes an [`Aabb`] from the [`AABB`] words at `at` (words past the end of `w`
+/// read as 0).
 pub fn aabb_from_words(w: &[u32], at: usize) -> Aabb {
     Aabb {
         min: [fword(w, at), fword(w, at + 1), fword(w, at + 2)],
@@ -107,6 +109,8 @@ pub fn aabb_from_words(w: &[u32], at: usize) -> Aabb {
     }
 }
 
+/// Encodes an [`Aabb`] into the [`AABB`] words at `at` (words past the end of `w`
+/// are skipped).
 pub fn aabb_to_words(b: &Aabb, w: &mut [u32], at: usize) {
     let mut a = 0;
     while a < 3 {
@@ -116,6 +120,8 @@ pub fn aabb_to_words(b: &Aabb, w: &mut [u32], at: usize) {
     }
 }
 
+/// Decodes a [`Pose`] from the [`POSE`] words at `at` (words past the end of `w`
+/// read as 0).
 pub fn pose_from_words(w: &[u32], at: usize) -> Pose {
     let mut m = [[0.0f32; 4]; 3];
     let mut r = 0;
@@ -130,6 +136,8 @@ pub fn pose_from_words(w: &[u32], at: usize) -> Pose {
     Pose { m }
 }
 
+/// Encodes a [`Pose`] into the [`POSE`] words at `at` (words past the end of `w`
+/// are skipped).
 pub fn pose_to_words(p: &Pose, w: &mut [u32], at: usize) {
     let mut r = 0;
     while r < 3 {
@@ -142,6 +150,8 @@ pub fn pose_to_words(p: &Pose, w: &mut [u32], at: usize) {
     }
 }
 
+/// Decodes an [`Intrinsics`] from the [`INTRINSICS`] words at `at` (words past the end of `w`
+/// read as 0).
 pub fn intrinsics_from_words(w: &[u32], at: usize) -> Intrinsics {
     Intrinsics {
         width: word(w, at),
@@ -153,6 +163,8 @@ pub fn intrinsics_from_words(w: &[u32], at: usize) -> Intrinsics {
     }
 }
 
+/// Encodes an [`Intrinsics`] into the [`INTRINSICS`] words at `at` (words past the end of `w`
+/// are skipped).
 pub fn intrinsics_to_words(k: &Intrinsics, w: &mut [u32], at: usize) {
     put(w, at, k.width);
     put(w, at + 1, k.height);
@@ -172,6 +184,8 @@ fn put_u32x3(w: &mut [u32], at: usize, v: [u32; 3]) {
     put(w, at + 2, v[2]);
 }
 
+/// Decodes a [`GridLayout`] from the [`GRID_LAYOUT`] words at `at` (words past the end of `w`
+/// read as 0).
 pub fn grid_layout_from_words(w: &[u32], at: usize) -> GridLayout {
     let kind = grid_kind(word(w, at));
     let mut level = [LevelLayout {
@@ -203,6 +217,8 @@ pub fn grid_layout_from_words(w: &[u32], at: usize) -> GridLayout {
     }
 }
 
+/// Encodes a [`GridLayout`] into the [`GRID_LAYOUT`] words at `at` (words past the end of `w`
+/// are skipped).
 pub fn grid_layout_to_words(g: &GridLayout, w: &mut [u32], at: usize) {
     put(w, at, g.kind as u32);
     put(w, at + 1, g.levels);
@@ -222,6 +238,8 @@ pub fn grid_layout_to_words(g: &GridLayout, w: &mut [u32], at: usize) {
     }
 }
 
+/// Decodes an [`MlpLayout`] from the [`MLP_LAYOUT`] words at `at` (words past the end of `w`
+/// read as 0).
 pub fn mlp_layout_from_words(w: &[u32], at: usize) -> MlpLayout {
     let mut weight_offsets = [0u32; MAX_HIDDEN_LAYERS + 1];
     let mut bias_offsets = [0u32; MAX_HIDDEN_LAYERS + 1];
@@ -242,6 +260,8 @@ pub fn mlp_layout_from_words(w: &[u32], at: usize) -> MlpLayout {
     }
 }
 
+/// Encodes an [`MlpLayout`] into the [`MLP_LAYOUT`] words at `at` (words past the end of `w`
+/// are skipped).
 pub fn mlp_layout_to_words(m: &MlpLayout, w: &mut [u32], at: usize) {
     put(w, at, m.n_in);
     put(w, at + 1, m.hidden);
@@ -274,6 +294,8 @@ fn render_mode(w: u32) -> RenderMode {
     }
 }
 
+/// Decodes a [`GridConfig`] from the [`GRID_CONFIG`] words at `at` (words past the end of `w`
+/// read as 0).
 pub fn grid_config_from_words(w: &[u32], at: usize) -> GridConfig {
     let mut cell_sizes = [0.0f32; MAX_LEVELS];
     let mut l = 0;
@@ -289,6 +311,8 @@ pub fn grid_config_from_words(w: &[u32], at: usize) -> GridConfig {
     }
 }
 
+/// Encodes a [`GridConfig`] into the [`GRID_CONFIG`] words at `at` (words past the end of `w`
+/// are skipped).
 pub fn grid_config_to_words(c: &GridConfig, w: &mut [u32], at: usize) {
     put(w, at, c.kind as u32);
     put(w, at + 1, c.levels);
@@ -300,6 +324,8 @@ pub fn grid_config_to_words(c: &GridConfig, w: &mut [u32], at: usize) {
     }
 }
 
+/// Decodes a [`ModelConfig`] from the [`MODEL_CONFIG`] words at `at` (words past the end of `w`
+/// read as 0).
 pub fn model_config_from_words(w: &[u32], at: usize) -> ModelConfig {
     let b = at + AABB + 2 * GRID_CONFIG;
     ModelConfig {
@@ -319,6 +345,8 @@ pub fn model_config_from_words(w: &[u32], at: usize) -> ModelConfig {
     }
 }
 
+/// Encodes a [`ModelConfig`] into the [`MODEL_CONFIG`] words at `at` (words past the end of `w`
+/// are skipped).
 pub fn model_config_to_words(c: &ModelConfig, w: &mut [u32], at: usize) {
     aabb_to_words(&c.aabb, w, at);
     grid_config_to_words(&c.geometry_grid, w, at + AABB);
@@ -350,6 +378,8 @@ pub fn model_layout_from_words(w: &[u32], at: usize) -> ModelLayout {
     }
 }
 
+/// Encodes a [`ModelLayout`] into the [`MODEL_LAYOUT`] words at `at` (words past the end of `w`
+/// are skipped).
 pub fn model_layout_to_words(l: &ModelLayout, w: &mut [u32], at: usize) {
     let g = at + MODEL_CONFIG;
     let m = g + 2 * GRID_LAYOUT;
@@ -360,6 +390,8 @@ pub fn model_layout_to_words(l: &ModelLayout, w: &mut [u32], at: usize) {
     mlp_layout_to_words(&l.appearance_mlp, w, m + MLP_LAYOUT);
 }
 
+/// Decodes a [`MappingLoss`] from the [`MAPPING_LOSS`] words at `at` (words past the end of `w`
+/// read as 0).
 pub fn mapping_loss_from_words(w: &[u32], at: usize) -> MappingLoss {
     MappingLoss {
         lambda_color: fword(w, at),
@@ -389,6 +421,8 @@ pub fn mapping_loss_from_words(w: &[u32], at: usize) -> MappingLoss {
     }
 }
 
+/// Encodes a [`MappingLoss`] into the [`MAPPING_LOSS`] words at `at` (words past the end of `w`
+/// are skipped).
 pub fn mapping_loss_to_words(l: &MappingLoss, w: &mut [u32], at: usize) {
     put(w, at, l.lambda_color.to_bits());
     put(w, at + 1, l.lambda_warp.to_bits());
@@ -455,7 +489,9 @@ pub fn window_to_words(
 
 /// The window's poses read straight from the words (a [`PoseRead`] over a storage buffer).
 pub struct WordPoses<'a> {
+    /// The window words (poses at [`WINDOW_POSES`]).
     pub words: &'a [u32],
+    /// Number of frames in the window.
     pub n: usize,
 }
 

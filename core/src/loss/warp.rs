@@ -88,9 +88,11 @@ pub const MAX_HALF: u32 = (PATCH / 2) as u32;
 pub trait FrameImages {
     /// The images live in a CPU's memory: [`warp_pixel`] names the next view's rows to
     /// [`Self::prefetch_row`] and warps a full patch in SIMD-friendly passes
-    /// ([`warp_view_lanes`], the same bits). False (the default, GPUs): neither is compiled in.
+    /// (`warp_view_lanes`, the same bits). False (the default, GPUs): neither is compiled in.
     const CPU: bool = false;
+    /// `(width, height)` of every frame (pixels).
     fn size(&self) -> (u32, u32);
+    /// Colour (RGB in `[0, 1]`) of pixel `(x, y)` of window frame `frame`.
     fn texel(&self, frame: usize, x: u32, y: u32) -> [f32; 3];
     /// A cache hint: texels `x0..=x1` of row `y` of `frame` will be read soon (`x0 <= x1`,
     /// all inside the image). No value changes; the default does nothing.
@@ -125,8 +127,11 @@ fn prefetch_patch<I: FrameImages + ?Sized>(images: &I, frame: usize, cu: f32, cv
 /// would have. An index past the end of `data` reads black (no panic).
 #[derive(Clone, Copy, Debug)]
 pub struct PackedImages<'a> {
+    /// Width of every frame (pixels).
     pub width: u32,
+    /// Height of every frame (pixels).
     pub height: u32,
+    /// The interleaved RGB values of all frames.
     pub data: &'a [f32],
 }
 

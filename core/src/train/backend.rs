@@ -38,11 +38,12 @@ pub struct StepStats {
 
 /// The operations the mapper and the CLI need from a compute backend.
 pub trait Backend {
+    /// What the backend's operations fail with.
     type Error: core::fmt::Debug + core::fmt::Display;
 
     /// The model's shapes.
     fn layout(&self) -> &ModelLayout;
-    /// Human-readable backend name ("cpu", "cpu-parallel(4)", "vulkan: <device>").
+    /// Human-readable backend name (`"cpu"`, `"cpu-parallel(4)"`, `"vulkan: <device>"`).
     fn name(&self) -> &str;
     /// One training step: gradients of the loss over `rays` (into zeroed fixed-point buffers)
     /// and an Adam update of every group, unless the step is not finite
@@ -75,7 +76,8 @@ pub trait Backend {
     /// Stores a frame's packed RGBA8 image (`width * height` pixels, row-major, R in the low
     /// byte, see [`crate::train::pixel::pack_rgba8`]) in image slot `slot`.
     fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), Self::Error>;
-    /// One mapping iteration: zero the gradients, [`pixel_train`] for every pixel
+    /// One mapping iteration: zero the gradients,
+    /// [`pixel_train`](crate::train::pixel::pixel_train) for every pixel
     /// (`pixel_id` = its index in `batch.pixels`), Adam unless the step is not finite
     /// ([`StepStats::rejected`]). `results[i]` receives pixel i's
     /// outputs; the returned loss is the sum of the pixels' colour and warp losses in pixel
@@ -97,8 +99,11 @@ pub trait Backend {
 /// Size of the image slots a backend stores frames in (fixed at construction).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub struct ImageStore {
+    /// Width of every slot image (pixels).
     pub width: u32,
+    /// Height of every slot image (pixels).
     pub height: u32,
+    /// Number of image slots.
     pub slots: u32,
 }
 
@@ -136,10 +141,15 @@ impl ImageStore {
 /// loss settings.
 #[derive(Clone, Copy, Debug)]
 pub struct MapBatch<'a> {
+    /// Intrinsics of every window frame (their size must match the image store).
     pub k: Intrinsics,
+    /// Camera-to-world pose of each window frame.
     pub poses: &'a [Pose],
+    /// Image slot of each window frame (same length as `poses`).
     pub slots: &'a [u32],
+    /// The pixels to train on.
     pub pixels: &'a [PixelSample],
+    /// Loss weights and switches.
     pub loss: MappingLoss,
 }
 

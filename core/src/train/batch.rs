@@ -27,11 +27,17 @@ use crate::ParamRead;
 /// What one thread needs to run items: the model, its parameters, the ray cache and scratch,
 /// the tape that keeps the forward's activations and the sink that receives the gradient.
 pub struct ItemRunner<'r, P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink> {
+    /// The model's shapes.
     pub layout: &'r ModelLayout,
+    /// The model's parameters.
     pub params: &'r Params<'r, P>,
+    /// Samples and rendering of the current item's ray.
     pub cache: &'r mut RayCache,
+    /// Per-sample evaluation scratch.
     pub scratch: &'r mut SampleScratch,
+    /// Keeps the forward's decoder activations for the backward.
     pub tape: &'r mut T,
+    /// Receives the gradient contributions.
     pub sink: &'r mut S,
     /// The rendered depths of the planarity triplet the runner is in (a run's items come in
     /// order, so a triplet's three items usually share one runner); start a run with
@@ -45,8 +51,11 @@ pub struct ItemRunner<'r, P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink
 /// a new forward would give (a runner lives for one run of items).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TripletMemo {
+    /// Batch index of the triplet's first item (`usize::MAX`: none).
     pub first: usize,
+    /// Rendered depth of item `first + k` (camera z, metres), valid when `known[k]`.
     pub depth: [f32; 3],
+    /// Which of the three depths are kept.
     pub known: [bool; 3],
 }
 
@@ -106,7 +115,9 @@ pub fn run_items<J: BatchJob, P: ParamRead + ?Sized, T: SampleTape, S: ModelGrad
 /// render at the bins' centres (no jitter; the sink receives nothing).
 #[derive(Clone, Copy)]
 pub struct Rays<'a> {
+    /// The batch's rays (item `i` is ray `i`).
     pub rays: &'a [Ray],
+    /// The training loss, or `None` for a render.
     pub loss: Option<&'a LossConfig>,
 }
 
@@ -148,8 +159,11 @@ impl BatchJob for Rays<'_> {
 
 /// A mapping iteration: [`pixel_train`] for every sampled pixel of a window.
 pub struct MapPixels<'a, I: FrameImages + ?Sized, PS: PoseRead + ?Sized> {
+    /// The sampled pixels (item `i` is pixel `i`).
     pub pixels: &'a [PixelSample],
+    /// The window the pixels' `frame` indices refer to.
     pub window: WindowView<'a, I, PS>,
+    /// Loss weights and switches.
     pub loss: &'a MappingLoss,
 }
 

@@ -15,6 +15,26 @@
 //!
 //! The rounding is computed from the truncating conversion and the exact remainder
 //! `x - trunc(x)` (see [`to_fixed`]), so it needs no rounding built-in on the GPU.
+//!
+//! # Examples
+//!
+//! ```rust
+//! use himap_core::train::fixed::{from_fixed, to_fixed, INV_SCALE, MAX_CONTRIBUTION};
+//!
+//! // One is 2^40 quanta; the round trip of a representable value is exact.
+//! assert_eq!(to_fixed(1.0), 1i64 << 40);
+//! assert_eq!(from_fixed(to_fixed(-0.375)), -0.375);
+//! // Sums of contributions do not depend on their order.
+//! let g = [0.1f32, -0.3, 1e-5, 7.0];
+//! let a: i64 = g.iter().map(|&x| to_fixed(x)).sum();
+//! let b: i64 = g.iter().rev().map(|&x| to_fixed(x)).sum();
+//! assert_eq!(a, b);
+//! assert!((from_fixed(a) - 6.80001).abs() < 1e-5);
+//! // Rounding to the nearest quantum, NaN counts as zero, huge values are clamped.
+//! assert_eq!(to_fixed(INV_SCALE * 0.75), 1);
+//! assert_eq!(to_fixed(f32::NAN), 0);
+//! assert_eq!(from_fixed(to_fixed(1e30)), MAX_CONTRIBUTION);
+//! ```
 
 /// Fractional bits of the fixed-point format (Q23.40).
 pub const FRAC_BITS: u32 = 40;

@@ -18,6 +18,16 @@ use crate::loss::warp::{warp_pixel, FrameImages, WarpConfig, MAX_WINDOW};
 use crate::ParamRead;
 
 /// Packs an RGB colour in [0, 1] into RGBA8 (alpha 255), rounding to nearest.
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::train::pixel::{pack_rgba8, unpack_rgba8};
+///
+/// let p = pack_rgba8([1.0, 0.0, 0.5]);
+/// assert_eq!(p, 0xff80_00ff); // R in the low byte, alpha 255 on top
+/// assert_eq!(unpack_rgba8(p), [1.0, 0.0, 128.0 / 255.0]);
+/// ```
 #[inline]
 pub fn pack_rgba8(rgb: [f32; 3]) -> u32 {
     let q = |x: f32| -> u32 {
@@ -42,9 +52,13 @@ pub fn unpack_rgba8(p: u32) -> [f32; 3] {
 /// The frames of a mapping window, read from slot storage: window frame `i` lives in slot
 /// `slots[i]` of `pixels` (slot-major, then row-major RGBA8).
 pub struct WindowImages<'a, P: SlotPixels + ?Sized> {
+    /// Width of every slot image (pixels).
     pub width: u32,
+    /// Height of every slot image (pixels).
     pub height: u32,
+    /// Slot of each window frame (entries past the window's length are unused).
     pub slots: [u32; MAX_WINDOW],
+    /// The whole slot store.
     pub pixels: &'a P,
 }
 
@@ -53,6 +67,7 @@ pub struct WindowImages<'a, P: SlotPixels + ?Sized> {
 pub trait SlotPixels {
     /// The pixels live in a CPU's memory (see [`FrameImages::CPU`]).
     const CPU: bool = false;
+    /// Packed RGBA8 pixel `i` of the store (0 past the end for a slice).
     fn pixel(&self, i: usize) -> u32;
     /// A cache hint: pixel `i` will be read soon. No value changes; the default does nothing.
     #[inline(always)]
@@ -106,8 +121,11 @@ impl<P: SlotPixels + ?Sized> FrameImages for WindowImages<'_, P> {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 #[repr(C)]
 pub struct PixelSample {
+    /// Index of the frame in the mapping window.
     pub frame: u32,
+    /// Column (pixels, 0 = left).
     pub u: u32,
+    /// Row (pixels, 0 = top).
     pub v: u32,
 }
 
@@ -128,6 +146,7 @@ pub struct MappingLoss {
     pub color_to_geometry: bool,
     /// Stratified jitter seed of this iteration.
     pub seed: u32,
+    /// Settings of DIM-SLAM's warping loss.
     pub warp: WarpConfig,
     /// Weight of DIM-SLAM's "fake depth" prior `smoothL1_0.1(D - depth_prior)` (scaled by
     /// `color_scale`), which pulls the rendered depth towards a plausible value during the
@@ -149,7 +168,9 @@ pub struct MappingLoss {
 /// (the item's own is filled in from its forward) and which of the three the item is.
 #[derive(Clone, Copy, Debug, PartialEq, Default)]
 pub struct PixelTriplet {
+    /// The triplet's three pixels, in batch order.
     pub pixels: [PixelSample; 3],
+    /// Their rendered depths (camera z, metres).
     pub depth: [f32; 3],
     /// 0, 1 or 2; anything else: the item belongs to no triplet.
     pub member: u32,
@@ -208,8 +229,11 @@ fn pick(v: [f32; 3], m: u32) -> f32 {
 /// What one sampled pixel produced.
 #[derive(Clone, Copy, Debug, PartialEq, Default)]
 pub struct PixelResult {
+    /// Rendered colour (RGB in [0, 1]).
     pub color: [f32; 3],
+    /// Rendered depth (camera z, metres).
     pub depth: f32,
+    /// Rendered opacity (sum of the rendering weights).
     pub opacity: f32,
     /// Scaled colour loss of the pixel.
     pub color_loss: f32,
@@ -221,9 +245,11 @@ pub struct PixelResult {
 
 /// The window every pixel of an iteration refers to.
 pub struct WindowView<'a, I: FrameImages + ?Sized, PS: PoseRead + ?Sized = [Pose]> {
+    /// Intrinsics shared by every window frame.
     pub k: Intrinsics,
     /// Camera-to-world poses of the window frames.
     pub poses: &'a PS,
+    /// The window frames' images.
     pub images: &'a I,
 }
 

@@ -17,19 +17,26 @@ use crate::{Error, NullSink};
 
 /// Parameters, Adam moments and the fixed-point gradient of one group, all caller-owned.
 pub struct GroupState<'a> {
+    /// The group's parameters.
     pub params: &'a mut [f32],
+    /// Adam's first moments (same length as `params`).
     pub m: &'a mut [f32],
+    /// Adam's second moments (same length as `params`).
     pub v: &'a mut [f32],
+    /// The fixed-point gradient of the last step ([`fixed`]; same length as `params`).
     pub grad: &'a mut [i64],
 }
 
 /// Adds each contribution, converted to fixed point, into per-group `i64` buffers.
 pub struct FixedModelSink<'s, 'a> {
+    /// One fixed-point buffer per group, in [`Group::ALL`] order; contributions past a
+    /// buffer's end are dropped.
     pub grads: [&'s mut [i64]; NUM_GROUPS],
     _marker: core::marker::PhantomData<&'a ()>,
 }
 
 impl<'s> FixedModelSink<'s, '_> {
+    /// A sink adding into `grads` (one buffer per group, in [`Group::ALL`] order).
     pub fn new(grads: [&'s mut [i64]; NUM_GROUPS]) -> Self {
         Self {
             grads,
