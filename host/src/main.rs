@@ -92,6 +92,17 @@ struct MapArgs {
     /// Print the effective configuration (TOML) and exit.
     #[arg(long)]
     print_config: bool,
+    /// Live view in the Rerun viewer: spawn one (or use the one already listening), or
+    /// connect to URL (rerun+http://HOST:PORT/proxy). Needs `--features rerun`.
+    #[arg(long, value_name = "URL", num_args = 0..=1, default_missing_value = "")]
+    rerun: Option<String>,
+    /// Write the live view's recording to FILE (.rrd; open with `rerun FILE`). Needs
+    /// `--features rerun`.
+    #[arg(long, value_name = "FILE")]
+    rerun_save: Option<PathBuf>,
+    /// Log the observed mesh to the live view after every N updates (0 = only the final one).
+    #[arg(long, value_name = "N", default_value_t = 10)]
+    rerun_mesh_every: usize,
 }
 
 #[derive(Args)]
@@ -422,6 +433,9 @@ fn map(args: MapArgs) -> anyhow::Result<()> {
         no_preflight,
         checkpoint_every,
         resume,
+        rerun,
+        rerun_save,
+        rerun_mesh_every,
     } = args;
     let base = himap::config::Config::preset(&preset)?;
     let cfg = match &config {
@@ -453,6 +467,11 @@ fn map(args: MapArgs) -> anyhow::Result<()> {
         stop_after: None,
         checkpoint_every,
         resume,
+        live: himap::mapper_cli::LiveOptions {
+            viewer: rerun.map(|u| (!u.is_empty()).then_some(u)),
+            save: rerun_save,
+            mesh_every: rerun_mesh_every,
+        },
     };
     let s = himap::mapper_cli::run_map(&opts)?;
     println!("{}", himap::mapper_cli::summary_table(&s));

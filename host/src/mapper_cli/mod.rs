@@ -36,6 +36,7 @@ use crate::select::{decide, BackendChoice, MapBackend};
 
 mod demo;
 mod evaluate;
+mod live;
 mod persist;
 mod plots;
 mod report;
@@ -45,6 +46,7 @@ mod surface;
 
 pub use demo::*;
 pub use evaluate::*;
+pub use live::*;
 pub use persist::*;
 pub use plots::*;
 pub use report::*;
@@ -79,6 +81,8 @@ pub struct MapOptions {
     pub checkpoint_every: usize,
     /// Continue from this checkpoint (a file, or the folder holding it).
     pub resume: Option<PathBuf>,
+    /// The live view (Rerun viewer or `.rrd` file; cargo feature `rerun`).
+    pub live: LiveOptions,
 }
 
 impl MapOptions {
@@ -100,6 +104,7 @@ impl MapOptions {
             stop_after: None,
             checkpoint_every: 0,
             resume: None,
+            live: LiveOptions::default(),
         }
     }
 }
@@ -109,6 +114,10 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
     let t_start = Instant::now();
     let cfg = &opts.config;
     cfg.validate()?;
+    if opts.live.enabled() && !cfg!(feature = "rerun") {
+        // before anything is read or allocated
+        LiveView::start(&opts.live)?;
+    }
     let lo = LoadOptions {
         start: opts.start,
         end: opts.end,

@@ -68,7 +68,15 @@ where
         .log
         .borrow_mut()
         .done(rec.rows.len(), rec.mapping_s);
-    finish_run(opts, ds, run, mapper.into_backend(), &rec, &poses, steps)
+    finish_run(
+        opts,
+        ds,
+        run,
+        mapper.into_backend(),
+        &mut rec,
+        &poses,
+        steps,
+    )
 }
 
 /// What a run's summary says of the backend and the scene box.
@@ -123,6 +131,9 @@ where
             }
             rec.outside_box += 1;
         }
+        if let Some(live) = rec.live.as_mut() {
+            live.frame(frame.index, &run.ctx.k, &frame.pose, &frame.rgb);
+        }
         let rgba = pack_image(&frame.rgb);
         let t0 = Instant::now();
         let last_psnr = rec.last_psnr;
@@ -133,7 +144,8 @@ where
             .map_err(|e| fail(e, &format!("frame {}", frame.index), last_checkpoint))?;
         if let Some(r) = rep {
             let dt = t0.elapsed().as_secs_f64();
-            rec.record(mapper.backend_mut(), r, &frame, dt, progress)?;
+            let seen = Seen::of(mapper, &poses);
+            rec.record(mapper.backend_mut(), r, &frame, dt, progress, &seen)?;
         }
         progress.pb.inc(1);
         last_frame = Some(frame);
@@ -149,10 +161,34 @@ where
             .map_err(|e| fail(e, "the final update", last_checkpoint))?;
         if let Some(r) = rep {
             let dt = t0.elapsed().as_secs_f64();
-            rec.record(mapper.backend_mut(), r, &frame, dt, progress)?;
+            let seen = Seen::of(mapper, &poses);
+            rec.record(mapper.backend_mut(), r, &frame, dt, progress, &seen)?;
         }
     }
     Ok(poses)
+}
+
+/// The mapper's view of the frames after an update, for the live view: the pushed poses,
+/// the window's and the keyframe cache's frames.
+struct Seen<'p> {
+    poses: &'p [Pose],
+    window: Vec<[f32; 3]>,
+    keyframes: Vec<[f32; 3]>,
+}
+
+impl<'p> Seen<'p> {
+    fn of<B: MapBackend>(mapper: &Mapper<'_, B>, poses: &'p [Pose]) -> Self {
+        let centre = |id: u32| poses.get(id as usize).map(|p| p.origin());
+        Self {
+            poses,
+            window: mapper
+                .window_ids()
+                .iter()
+                .filter_map(|&i| centre(i))
+                .collect(),
+            keyframes: mapper.keyframe_ids().filter_map(centre).collect(),
+        }
+    }
 }
 
 /// Saves the map, the mapper's state, the learning rates and the metrics so far
@@ -192,7 +228,7 @@ fn finish_run<B: MapBackend>(
     ds: &dyn crate::dataset::Dataset,
     run: RunInfo,
     mut backend: B,
-    rec: &UpdateRecorder<'_>,
+    rec: &mut UpdateRecorder<'_>,
     poses: &[Pose],
     steps: StepCounts,
 ) -> anyhow::Result<MapSummary>
@@ -212,6 +248,11 @@ where
         );
     }
     let surface = write_meshes(&mut backend, opts, &rec.ek, &k, poses, ctx.aabb)?;
+    if let Some(live) = rec.live.as_mut() {
+        let last = rec.rows.last().map_or(0, |r| r.frame);
+        live.mesh(last, &crate::mesh::Mesh::read_ply(&surface.path)?);
+        live.finish()?;
+    }
     let (mesh_metrics, mesh_gt, mesh_err) = evaluate_mesh(opts, ds, &surface);
     let data = backend.export()?;
     save_map(&opts.out.join("map.safetensors"), cfg, &data)?;
@@ -413,6 +454,8 @@ struct UpdateRecorder<'o> {
     mapping_s: f64,
     /// Pushed frames whose camera was outside the scene box.
     outside_box: usize,
+    /// The live view, when asked for.
+    live: Option<LiveView>,
 }
 
 impl<'o> UpdateRecorder<'o> {
@@ -456,6 +499,7 @@ impl<'o> UpdateRecorder<'o> {
             last_psnr,
             mapping_s,
             outside_box,
+            live: LiveView::start(&opts.live)?,
         })
     }
 
@@ -467,6 +511,7 @@ impl<'o> UpdateRecorder<'o> {
         frame: &crate::dataset::Frame,
         seconds: f64,
         progress: &Progress,
+        seen: &Seen<'_>,
     ) -> anyhow::Result<()>
     where
         B::Error: std::error::Error + Send + Sync + 'static,
@@ -476,8 +521,12 @@ impl<'o> UpdateRecorder<'o> {
         let cfg = &self.opts.config;
         let eval = cfg.eval.every > 0 && u.is_multiple_of(cfg.eval.every as usize);
         let (mut psnr, mut ssim, mut dl1) = (f64::NAN, f64::NAN, None);
-        if eval {
-            let v = evaluate_view(backend, &self.ek, frame)?;
+        // The live view shows every update's render, evaluated or not.
+        let mut view = None;
+        if eval || self.live.is_some() {
+            view = Some(evaluate_view(backend, &self.ek, frame)?);
+        }
+        if let Some(v) = view.as_ref().filter(|_| eval) {
             (psnr, ssim, dl1) = (v.psnr, v.ssim, v.depth_l1_cm);
             if u.is_multiple_of(self.render_every) {
                 let p = self
@@ -514,8 +563,60 @@ impl<'o> UpdateRecorder<'o> {
         if let Some(r) = self.rows.last() {
             progress.log.borrow_mut().update(r);
         }
+        if let (Some(live), Some(v), Some(row)) = (self.live.as_mut(), &view, self.rows.last()) {
+            live.update(&LiveUpdate {
+                frame: frame.index,
+                input: &v.input,
+                render: &v.out,
+                k: self.ek,
+                metrics: row,
+                window: seen.window.clone(),
+                keyframes: seen.keyframes.clone(),
+            });
+            let every = self.opts.live.mesh_every;
+            if every > 0 && (u + 1).is_multiple_of(every) {
+                let mesh = observed_mesh(backend, cfg, &self.ek, seen.poses)?;
+                live.mesh(frame.index, &mesh);
+            }
+        }
         Ok(())
     }
+}
+
+/// A quick mesh of the observed scene for the live view: the level from 4 views rendered at
+/// half the evaluation size (or the configured one), the region and the culling from 16
+/// views, at twice the configured mesh spacing.
+fn observed_mesh<B: MapBackend>(
+    backend: &mut B,
+    cfg: &Config,
+    ek: &Intrinsics,
+    poses: &[Pose],
+) -> anyhow::Result<crate::mesh::Mesh>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let aabb = backend.layout().config.aabb;
+    let level = match cfg.eval.mesh_level {
+        Some(l) => l,
+        None => {
+            let mut b = [0.0f32; 1];
+            backend.read_params(Group::Beta, &mut b)?;
+            let lk = ek.resized((ek.width / 2).max(1), (ek.height / 2).max(1));
+            rendered_surface_level(backend, &lk, poses, 4)?
+                .unwrap_or_else(|| cfg.surface_level(b[0]))
+        }
+    };
+    let views = observed_views(backend, ek, poses, 16)?;
+    let res = 2.0 * cfg.eval.mesh_resolution;
+    let Some(region) = observed_region(&views, aabb, 2.0 * res) else {
+        return Ok(crate::mesh::Mesh::default());
+    };
+    let full = map_mesh(backend, region, res, level)?;
+    Ok(crate::eval::cull_mesh(
+        &full,
+        views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
+        Some(cfg.eval.observed_margin),
+    ))
 }
 
 /// What [`write_meshes`] wrote.
