@@ -171,20 +171,81 @@ pub fn bench_cpu(
     Ok(row(be.name(), name, cfg, &layout, rays, work, t))
 }
 
+/// A profiled training step: the passes' times and the wall time of the profiled steps (ms).
+pub type Profile = (Vec<himap_vulkan::PassTime>, f64);
+
 /// Measures the Vulkan backend on the selected device. The memory column adds the per-batch
-/// device buffers (rays, results, sample records) to the model state.
+/// device buffers (rays, results, sample records) to the model state. With `profile`, `steps`
+/// more training steps are timed pass by pass (timestamp queries; host transfers timed on
+/// the host) and returned with the wall time of those steps (ms).
 pub fn bench_vulkan(
     name: &str,
     cfg: &ModelConfig,
     rays: usize,
     steps: usize,
-) -> anyhow::Result<BenchRow> {
+    profile: bool,
+) -> anyhow::Result<(BenchRow, Option<Profile>)> {
     let layout = ModelLayout::new(cfg)?;
     let data = ModelData::new(layout, 1)?;
     let mut be = himap_vulkan::VulkanBackend::new(layout, data.param_slices(), paper_adam())?;
     let t = measure(&mut be, cfg, rays, steps)?;
     let batch_bytes = rays * (10 + 6) * 4 + rays * cfg.samples as usize * 9 * 4;
-    Ok(row(be.name(), name, cfg, &layout, rays, batch_bytes, t))
+    let r = row(be.name(), name, cfg, &layout, rays, batch_bytes, t);
+    if !profile {
+        return Ok((r, None));
+    }
+    be.enable_profiling()?;
+    let batch = rays_in_dirs(&cfg.aabb, rays, 7, cfg.samples == 64);
+    let mut res = vec![RayResult::default(); rays];
+    let steps = steps.max(1);
+    let t0 = Instant::now();
+    for s in 0..steps {
+        let loss = LossConfig {
+            lambda_color: 1.0,
+            lambda_depth: 0.0,
+            ray_scale: 1.0 / rays as f32,
+            color_to_geometry: true,
+            seed: s as u32,
+        };
+        be.train_step(&batch, &loss, &mut res)?;
+    }
+    let wall_ms = t0.elapsed().as_secs_f64() * 1e3;
+    Ok((r, Some((be.profile(), wall_ms))))
+}
+
+/// The per-pass table of a profiled training step: each pass's milliseconds per step and
+/// share of the step's wall time, then the time not covered by any pass (submission, waits,
+/// host work between the transfers).
+pub fn format_profile(passes: &[himap_vulkan::PassTime], wall_ms: f64, steps: usize) -> String {
+    let steps = steps.max(1) as f64;
+    let per_step = wall_ms / steps;
+    let mut s = format!(
+        "  per pass (timestamp queries; {:.1} ms per step over {} steps):\n",
+        per_step, steps
+    );
+    if !passes.iter().any(|p| p.device) {
+        s += "    (the device has no timestamps on its compute queue: transfers only)\n";
+    }
+    let mut covered = 0.0;
+    for p in passes {
+        let ms = p.total_ms / steps;
+        covered += ms;
+        s += &format!(
+            "    {:<40} {:>10.3} ms {:>6.1} %{}\n",
+            p.name,
+            ms,
+            100.0 * ms / per_step.max(1e-12),
+            if p.device { "" } else { "  (host)" }
+        );
+    }
+    let rest = (per_step - covered).max(0.0);
+    s += &format!(
+        "    {:<40} {:>10.3} ms {:>6.1} %\n",
+        "other (submission, waits, host)",
+        rest,
+        100.0 * rest / per_step.max(1e-12)
+    );
+    s
 }
 
 /// What `himap bench` measures.
@@ -198,6 +259,8 @@ pub struct BenchOptions {
     pub configs: String,
     /// CPU threads (0 = all cores).
     pub threads: usize,
+    /// Time the Vulkan backend's passes (`--profile`).
+    pub profile: bool,
 }
 
 /// Runs the benchmark and prints the table to `out`. A backend that cannot start (no Vulkan
@@ -238,8 +301,13 @@ pub fn run_bench(opts: &BenchOptions, out: &mut dyn std::io::Write) -> anyhow::R
             }
         }
         if want_vk {
-            match bench_vulkan(name, &cfg, opts.rays, opts.steps) {
-                Ok(r) => writeln!(out, "{}", format_row(&r))?,
+            match bench_vulkan(name, &cfg, opts.rays, opts.steps, opts.profile) {
+                Ok((r, prof)) => {
+                    writeln!(out, "{}", format_row(&r))?;
+                    if let Some((passes, wall)) = prof {
+                        write!(out, "{}", format_profile(&passes, wall, opts.steps))?;
+                    }
+                }
                 Err(e) => writeln!(out, "vulkan: skipped ({e:#})")?,
             }
         }

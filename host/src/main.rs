@@ -145,6 +145,10 @@ struct BenchArgs {
     /// CPU worker threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     threads: usize,
+    /// Time each pass of the Vulkan backend's training step (Vulkan timestamp queries;
+    /// transfers timed on the host) and print its share of the step.
+    #[arg(long)]
+    profile: bool,
 }
 
 #[derive(Args)]
@@ -527,6 +531,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
         backend,
         config,
         threads,
+        profile,
     } = args;
     let opts = himap::bench::BenchOptions {
         rays,
@@ -534,6 +539,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
         backends: backend,
         configs: config,
         threads,
+        profile,
     };
     himap::bench::run_bench(&opts, &mut std::io::stdout())?;
     Ok(())

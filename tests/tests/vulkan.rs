@@ -283,3 +283,65 @@ fn grids_split_across_two_bindings_match_cpu() {
         .expect("three parts are not supported");
     assert!(matches!(e, VulkanError::TensorTooLarge { .. }), "{e}");
 }
+
+/// `enable_profiling` times every pass of a training step with timestamp queries (and the
+/// host's transfers) without changing what the step computes.
+#[test]
+fn profiled_steps_name_every_pass_and_keep_the_bits() {
+    let (data, rays) = setup(RenderMode::SdfDensity, 5, 64);
+    let adam = test_adam();
+    let Some(mut plain) = vulkan_or_skip(&data, adam) else {
+        return;
+    };
+    let mut timed = vulkan_or_skip(&data, adam).unwrap();
+    let has_timestamps = timed.enable_profiling().unwrap();
+    let loss = loss_config(3, rays.len());
+    let (mut ra, mut rb) = (
+        vec![RayResult::default(); rays.len()],
+        vec![RayResult::default(); rays.len()],
+    );
+    let t0 = std::time::Instant::now();
+    for _ in 0..2 {
+        plain.train_step(&rays, &loss, &mut ra).unwrap();
+        timed.train_step(&rays, &loss, &mut rb).unwrap();
+    }
+    let wall_ms = t0.elapsed().as_secs_f64() * 1e3;
+    assert_same_f32("results", &result_floats(&ra), &result_floats(&rb));
+    for g in Group::ALL {
+        let n = data.params[g as usize].len();
+        let (mut a, mut b) = (vec![0.0f32; n], vec![0.0f32; n]);
+        plain.read_params(g, &mut a).unwrap();
+        timed.read_params(g, &mut b).unwrap();
+        assert_same_f32(g.name(), &a, &b);
+    }
+    let prof = timed.profile();
+    let names: Vec<&str> = prof.iter().map(|p| p.name).collect();
+    let want_host = ["upload (host)", "read back (host)"];
+    for w in want_host {
+        assert!(names.contains(&w), "{names:?}");
+    }
+    if has_timestamps {
+        for w in [
+            "zero gradients",
+            "forward (per sample)",
+            "composite and loss (per ray)",
+            "backward (per sample)",
+            "finiteness checks",
+            "Adam",
+        ] {
+            let p = prof
+                .iter()
+                .find(|p| p.name == w)
+                .unwrap_or_else(|| panic!("{w}: {names:?}"));
+            assert!(p.device && p.count == 2, "{p:?}");
+            assert!(p.total_ms >= 0.0);
+        }
+        let total: f64 = prof.iter().map(|p| p.total_ms).sum();
+        assert!(
+            total > 0.0 && total <= wall_ms,
+            "{total} ms of {wall_ms} ms"
+        );
+    }
+    timed.reset_profile();
+    assert!(timed.profile().is_empty());
+}

@@ -158,6 +158,32 @@ pub struct VulkanBackend {
     pipelines: Pipelines,
     _module: ShaderModule,
     gpu: Gpu,
+    /// Host time of the transfers per label ([`VulkanBackend::enable_profiling`]), and
+    /// whether they are timed.
+    host_times: std::cell::RefCell<Vec<(&'static str, f64, u64)>>,
+    profiling: bool,
+}
+
+/// Time spent in one named pass ([`VulkanBackend::profile`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PassTime {
+    /// The pass (`"forward (per sample)"`, `"Adam"`, ...); transfers end in `"(host)"`.
+    pub name: &'static str,
+    /// Whether it was timed on the device (timestamp queries) or on the host (transfers).
+    pub device: bool,
+    /// Total milliseconds over `count` runs.
+    pub total_ms: f64,
+    pub count: u64,
+}
+
+fn add_time(list: &mut Vec<(&'static str, f64, u64)>, name: &'static str, ns: f64) {
+    match list.iter_mut().find(|e| e.0 == name) {
+        Some(e) => {
+            e.1 += ns;
+            e.2 += 1;
+        }
+        None => list.push((name, ns, 1)),
+    }
 }
 
 /// The model words the kernels read: the layout, then where each grid's parameters split
@@ -251,6 +277,8 @@ impl VulkanBackend {
             pipelines,
             _module: module,
             gpu,
+            host_times: Default::default(),
+            profiling: false,
         })
     }
 
@@ -417,9 +445,57 @@ impl VulkanBackend {
         Ok(records)
     }
 
+    /// Times every later submission's passes with timestamp queries, and the host's
+    /// transfers (uploads of a batch, read-back of its results). Returns false when the device
+    /// has no timestamps on its compute queue (then only the transfers are timed).
+    pub fn enable_profiling(&mut self) -> Result<bool, VulkanError> {
+        self.profiling = true;
+        self.gpu.enable_timestamps()
+    }
+
+    /// The times measured since profiling was enabled (or [`Self::reset_profile`]): device
+    /// passes in the order they first ran, then the host transfers.
+    pub fn profile(&self) -> Vec<PassTime> {
+        let dev = self.gpu.timer.as_ref().map_or(&[][..], |t| &t.totals[..]);
+        let host = self.host_times.borrow();
+        dev.iter()
+            .map(|e| (e, true))
+            .chain(host.iter().map(|e| (e, false)))
+            .map(|(&(name, ns, count), device)| PassTime {
+                name,
+                device,
+                total_ms: ns * 1e-6,
+                count,
+            })
+            .collect()
+    }
+
+    /// Forgets the times measured so far.
+    pub fn reset_profile(&mut self) {
+        if let Some(t) = self.gpu.timer.as_mut() {
+            t.totals.clear();
+        }
+        self.host_times.borrow_mut().clear();
+    }
+
+    /// Adds the host time since `t0` to `name` when profiling.
+    fn host_time(&self, name: &'static str, t0: std::time::Instant) {
+        if self.profiling {
+            let ns = t0.elapsed().as_secs_f64() * 1e9;
+            add_time(&mut self.host_times.borrow_mut(), name, ns);
+        }
+    }
+
     /// Uploads rays and makes room for their results and sample records; returns the number of
     /// sample records.
     fn stage_rays(&mut self, rays: &[Ray]) -> Result<usize, VulkanError> {
+        let t0 = std::time::Instant::now();
+        let r = self.stage_rays_untimed(rays);
+        self.host_time("upload (host)", t0);
+        r
+    }
+
+    fn stage_rays_untimed(&mut self, rays: &[Ray]) -> Result<usize, VulkanError> {
         let n = rays.len();
         self.check_binding("the rays of a batch", (n * RAY_FLOATS * 4) as u64)?;
         let mut flat = Vec::with_capacity(n * RAY_FLOATS);
@@ -446,6 +522,13 @@ impl VulkanBackend {
     }
 
     fn read_floats(&self, len: usize) -> Vec<f32> {
+        let t0 = std::time::Instant::now();
+        let f = self.read_floats_untimed(len);
+        self.host_time("read back (host)", t0);
+        f
+    }
+
+    fn read_floats_untimed(&self, len: usize) -> Vec<f32> {
         let Some(out) = &self.output else {
             return vec![0.0; len];
         };
@@ -585,6 +668,7 @@ impl Backend for VulkanBackend {
                 let set = passes.bind_composite(r, pipeline, &[], output)?;
                 dispatch_items(r, pipeline, &set, n, passes.max_groups, train_push);
                 r.barrier();
+                r.mark("composite and loss (per ray)");
                 passes.sample_backward(r)?;
             }
             passes.checked_adam(r, &steps, output, n, RESULT_FLOATS, RESULT_LOSS)
@@ -623,6 +707,7 @@ impl Backend for VulkanBackend {
                 ],
             )?;
             dispatch_items(r, pipeline, &set, n, passes.max_groups, range_push);
+            r.mark("composite (render)");
             Ok(())
         })?;
         self.read_results(results);
@@ -721,8 +806,10 @@ impl Backend for VulkanBackend {
         check_len("results", results.len(), batch.pixels.len())?;
         let slots = window_slots(batch, &self.store)?;
         let n = batch.pixels.len();
+        let t0 = std::time::Instant::now();
         self.stage_window(batch, &slots)?;
         let records = self.stage_samples(n)?;
+        self.host_time("upload (host)", t0);
         let steps = self.adam_steps();
         let seed = batch.loss.seed;
         let Self {
@@ -767,6 +854,7 @@ impl Backend for VulkanBackend {
                 let set = r.bind(pipeline, &[window, pixels, images, input])?;
                 dispatch_items(r, pipeline, &set, n, passes.max_groups, range_push);
                 r.barrier();
+                r.mark("pixel rays");
                 passes.sample_forward(r, seed, true)?;
                 let pipeline = &pipelines.pixel_train;
                 let set = passes.bind_composite(r, pipeline, &[window, pixels, images], output)?;
@@ -774,6 +862,7 @@ impl Backend for VulkanBackend {
                 let push = |first, count| batch_push(first, count, n as u32);
                 dispatch_items(r, pipeline, &set, n, passes.max_groups, push);
                 r.barrier();
+                r.mark("composite and pixel losses (per pixel)");
                 passes.sample_backward(r)?;
             }
             passes.checked_adam(

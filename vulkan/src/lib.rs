@@ -21,7 +21,7 @@ mod error;
 mod passes;
 mod raw;
 
-pub use backend::{VulkanBackend, VulkanOptions};
+pub use backend::{PassTime, VulkanBackend, VulkanOptions};
 pub use device::{describe_devices, list_devices, DeviceInfo, DeviceKind, DEVICE_ENV};
 pub use error::VulkanError;
 

@@ -149,6 +149,7 @@ impl<'a> Passes<'a> {
         }
         r.zero(self.status);
         r.barrier();
+        r.mark("zero gradients");
     }
 
     /// Pass 1: `sample_forward_cs` over every sample record.
@@ -184,6 +185,7 @@ impl<'a> Passes<'a> {
             },
         );
         r.barrier();
+        r.mark("forward (per sample)");
         Ok(())
     }
 
@@ -202,6 +204,7 @@ impl<'a> Passes<'a> {
         )?;
         dispatch_items(r, pipeline, &set, self.records, self.max_groups, range_push);
         r.barrier();
+        r.mark("backward (per sample)");
         Ok(())
     }
 
@@ -232,7 +235,10 @@ impl<'a> Passes<'a> {
         r.barrier();
         self.adam(r, steps, &self.pipelines.adam_check)?;
         r.barrier();
-        self.adam(r, steps, &self.pipelines.adam)
+        r.mark("finiteness checks");
+        self.adam(r, steps, &self.pipelines.adam)?;
+        r.mark("Adam");
+        Ok(())
     }
 
     /// `pipeline` (`adam_cs` or `adam_check_cs`) over every part of every group.

@@ -11,6 +11,17 @@ use super::{Buffer, Device, Pipeline};
 const TIMEOUT_S: u64 = 900;
 /// Descriptor sets per submission.
 const MAX_SETS: u32 = 64;
+/// Timestamps per submission (the start and one after each marked pass).
+const MAX_MARKS: u32 = 64;
+
+/// GPU time per named pass, from timestamp queries ([`Gpu::enable_timestamps`]).
+pub(crate) struct Timer {
+    pool: vk::QueryPool,
+    period_ns: f64,
+    mask: u64,
+    /// Per label: total nanoseconds and how many times it was marked.
+    pub(crate) totals: Vec<(&'static str, f64, u64)>,
+}
 
 /// Command recording and submission state: one command buffer, a fence and a descriptor pool
 /// that is reset at the start of every submission.
@@ -20,9 +31,40 @@ pub(crate) struct Gpu {
     pub(super) cmd: vk::CommandBuffer,
     pub(super) fence: vk::Fence,
     pub(super) descriptors: vk::DescriptorPool,
+    pub(crate) timer: Option<Timer>,
 }
 
 impl Gpu {
+    /// Starts timing the passes [`Recorder::mark`] names (a query pool of [`MAX_MARKS`]
+    /// timestamps). Returns false, and times nothing, when the compute queue has no
+    /// timestamps.
+    pub fn enable_timestamps(&mut self) -> Result<bool, VulkanError> {
+        if self.timer.is_some() {
+            return Ok(true);
+        }
+        let info = &self.device.info;
+        if info.timestamp_valid_bits == 0 || info.timestamp_period <= 0.0 {
+            return Ok(false);
+        }
+        let ci = vk::QueryPoolCreateInfo::default()
+            .query_type(vk::QueryType::TIMESTAMP)
+            .query_count(MAX_MARKS);
+        // SAFETY: valid create info for this device.
+        let pool = unsafe { self.device.device.create_query_pool(&ci, None) }
+            .map_err(|r| VulkanError::from_vk("vkCreateQueryPool", r, "timestamps", 0))?;
+        let bits = info.timestamp_valid_bits;
+        self.timer = Some(Timer {
+            pool,
+            period_ns: f64::from(info.timestamp_period),
+            mask: if bits >= 64 {
+                u64::MAX
+            } else {
+                (1u64 << bits) - 1
+            },
+            totals: Vec::new(),
+        });
+        Ok(true)
+    }
     pub fn new(device: &Arc<Device>) -> Result<Self, VulkanError> {
         let d = &device.device;
         let ci = vk::CommandPoolCreateInfo::default()
@@ -38,6 +80,7 @@ impl Gpu {
             cmd: vk::CommandBuffer::null(),
             fence: vk::Fence::null(),
             descriptors: vk::DescriptorPool::null(),
+            timer: None,
         };
         let ai = vk::CommandBufferAllocateInfo::default()
             .command_pool(pool)
@@ -96,8 +139,22 @@ impl Gpu {
             cmd: self.cmd,
             descriptors: self.descriptors,
             sets: 0,
+            timestamps: self
+                .timer
+                .as_ref()
+                .map_or(vk::QueryPool::null(), |t| t.pool),
+            marks: Vec::new(),
         };
+        if let Some(t) = &self.timer {
+            // SAFETY: recording state; the pool has MAX_MARKS queries and is not in use (the
+            // previous submission was waited for).
+            unsafe {
+                d.cmd_reset_query_pool(self.cmd, t.pool, 0, MAX_MARKS);
+                d.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::TOP_OF_PIPE, t.pool, 0);
+            }
+        }
         let recorded = f(&mut rec);
+        let marks = std::mem::take(&mut rec.marks);
         rec.barrier_to_host();
         // SAFETY: the command buffer is in the recording state.
         let ended = unsafe { d.end_command_buffer(self.cmd) }
@@ -127,6 +184,30 @@ impl Gpu {
         // SAFETY: the fence is signalled and no longer used by any pending submission.
         unsafe { d.reset_fences(&[self.fence]) }
             .map_err(|r| VulkanError::from_vk("vkResetFences", r, "", 0))?;
+        if let (Some(t), false) = (self.timer.as_mut(), marks.is_empty()) {
+            let mut ticks = vec![0u64; marks.len() + 1];
+            // SAFETY: queries 0..=marks.len() were written in the submission just waited for.
+            unsafe {
+                d.get_query_pool_results(
+                    t.pool,
+                    0,
+                    &mut ticks,
+                    vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
+                )
+            }
+            .map_err(|r| VulkanError::from_vk("vkGetQueryPoolResults", r, "timestamps", 0))?;
+            for (i, label) in marks.iter().enumerate() {
+                let dt = (ticks[i + 1] & t.mask).wrapping_sub(ticks[i] & t.mask) & t.mask;
+                let ns = dt as f64 * t.period_ns;
+                match t.totals.iter_mut().find(|e| e.0 == *label) {
+                    Some(e) => {
+                        e.1 += ns;
+                        e.2 += 1;
+                    }
+                    None => t.totals.push((label, ns, 1)),
+                }
+            }
+        }
         Ok(())
     }
 }
@@ -138,6 +219,9 @@ impl Drop for Gpu {
         // covers a timed-out one); null handles are valid no-ops for the destroy calls.
         unsafe {
             let _ = d.device_wait_idle();
+            if let Some(t) = &self.timer {
+                d.destroy_query_pool(t.pool, None);
+            }
             d.destroy_descriptor_pool(self.descriptors, None);
             d.destroy_fence(self.fence, None);
             d.destroy_command_pool(self.pool, None);
@@ -152,9 +236,31 @@ pub(crate) struct Recorder<'a> {
     pub(super) cmd: vk::CommandBuffer,
     pub(super) descriptors: vk::DescriptorPool,
     pub(super) sets: u32,
+    /// The timer's query pool (null: not timing) and the labels marked so far.
+    pub(super) timestamps: vk::QueryPool,
+    pub(super) marks: Vec<&'static str>,
 }
 
 impl<'a> Recorder<'a> {
+    /// Ends the pass named `label` for the timer: a timestamp once everything recorded
+    /// before has completed (nothing when not timing, or past [`MAX_MARKS`]).
+    pub fn mark(&mut self, label: &'static str) {
+        if self.timestamps == vk::QueryPool::null() || self.marks.len() + 1 >= MAX_MARKS as usize {
+            return;
+        }
+        self.marks.push(label);
+        // SAFETY: recording state; query `marks.len()` of the pool was reset at the start of
+        // this submission and is written once.
+        unsafe {
+            self.device.device.cmd_write_timestamp(
+                self.cmd,
+                vk::PipelineStageFlags::BOTTOM_OF_PIPE,
+                self.timestamps,
+                self.marks.len() as u32,
+            )
+        };
+    }
+
     /// Fills a buffer with zeros.
     pub fn zero(&mut self, buffer: &'a Buffer) {
         // SAFETY: recording state; the buffer has TRANSFER_DST usage and lives for `'a`.

@@ -22,6 +22,10 @@ pub(crate) struct PhysicalInfo {
     pub shader_int64: bool,
     pub shader_buffer_int64_atomics: bool,
     pub vulkan_memory_model: bool,
+    /// Nanoseconds per timestamp tick (`timestampPeriod`).
+    pub timestamp_period: f32,
+    /// Valid bits of the compute queue's timestamps (0: no timestamps on that queue).
+    pub timestamp_valid_bits: u32,
 }
 
 impl PhysicalInfo {
@@ -134,6 +138,8 @@ impl Instance {
                 .iter()
                 .position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && f.queue_count > 0)
                 .map(|i| i as u32);
+            let timestamp_valid_bits =
+                compute_queue_family.map_or(0, |q| families[q as usize].timestamp_valid_bits);
             // SAFETY: as above.
             let mem = unsafe { self.instance.get_physical_device_memory_properties(pd) };
             let device_local_bytes = mem.memory_heaps[..mem.memory_heap_count as usize]
@@ -165,6 +171,8 @@ impl Instance {
                 shader_int64,
                 shader_buffer_int64_atomics: atomics64,
                 vulkan_memory_model: memory_model,
+                timestamp_period: props.limits.timestamp_period,
+                timestamp_valid_bits,
             });
         }
         Ok(out)
