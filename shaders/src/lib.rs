@@ -111,6 +111,27 @@ pub fn probe_cs(
     out[base + 3] = fixed::from_fixed(fixed::to_fixed(r));
 }
 
+/// Loop-budget canary: invocation 0 runs [`himap_core::gpu_abi::loop_canary`] for `n` steps
+/// from seed `arg` and writes the final state and the step count to `out[0]`, `out[1]`. The
+/// host compares them with the CPU's to find how many loop iterations an invocation may run.
+///
+/// - binding 0 `out`: 2 words.
+///
+/// Push constants ([`KernelPush`]): `n` = steps, `arg` = seed.
+#[spirv(compute(threads(64)))]
+pub fn loop_canary_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &KernelPush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] out: &mut [u32],
+) {
+    if id.x != 0 || out.len() < 2 {
+        return;
+    }
+    let r = himap_core::gpu_abi::loop_canary(pc.n, pc.arg);
+    out[0] = r[0];
+    out[1] = r[1];
+}
+
 /// Fixed-point atomics: `acc[i % buckets] += to_fixed(values[i])` through [`AtomicSink`]. The
 /// sums are order-independent, so they match `himap_core::FixedSink` bit for bit.
 ///

@@ -345,3 +345,84 @@ fn profiled_steps_name_every_pass_and_keep_the_bits() {
     timed.reset_profile();
     assert!(timed.profile().is_empty());
 }
+
+/// The loop canary measures how many loop iterations one invocation completes: llvmpipe cuts
+/// every loop of an invocation after 65535 (a real GPU completes the canary's longest loop);
+/// a mapping window whose warping pass could need more is refused with the reason instead of
+/// running silently wrong, and one that fits runs.
+#[test]
+fn the_loop_canary_measures_the_budget_and_guards_the_warping_pass() {
+    use himap_core::gpu_abi::pixel_train_loop_bound;
+    use himap_core::loss::planar::PlanarConfig;
+    use himap_core::loss::warp::WarpConfig;
+    use himap_core::train::backend::MapBatch;
+    use himap_core::train::pixel::{MappingLoss, PixelResult, PixelSample};
+    use himap_tests::conformance::synthetic_window;
+
+    let frames = 20;
+    let (data, k, poses, images) = synthetic_window(RenderMode::SdfDensity, frames);
+    let store = ImageStore {
+        width: k.width,
+        height: k.height,
+        slots: frames as u32,
+    };
+    let Some(gpu) = vulkan_or_skip(&data, test_adam()) else {
+        return;
+    };
+    let mut gpu = gpu.with_images(store).unwrap();
+    let budget = gpu.loop_budget();
+    eprintln!("{}: loop budget {budget:?}", gpu.name());
+    if gpu.name().contains("llvmpipe") {
+        let b = budget.expect("llvmpipe cuts loops");
+        assert!((60_000..=65_535).contains(&b), "budget {b}");
+    }
+    for (i, img) in images.iter().enumerate() {
+        gpu.upload_frame(i as u32, img).unwrap();
+    }
+    let slots: Vec<u32> = (0..frames as u32).collect();
+    let pixels = vec![
+        PixelSample {
+            frame: 0,
+            u: 5,
+            v: 7
+        };
+        8
+    ];
+    let mut res = vec![PixelResult::default(); pixels.len()];
+    let step = |gpu: &mut VulkanBackend, n: usize, res: &mut [PixelResult]| {
+        let batch = MapBatch {
+            k,
+            poses: &poses[..n],
+            slots: &slots[..n],
+            pixels: &pixels,
+            loss: MappingLoss {
+                lambda_color: 0.1,
+                lambda_warp: 1.0,
+                color_scale: 0.125,
+                warp_scale: 0.125,
+                color_to_geometry: true,
+                seed: 1,
+                warp: WarpConfig::dim_slam(),
+                lambda_depth_prior: 0.0,
+                depth_prior: 1.5,
+                depth_prior_near: 0.0,
+                planar: PlanarConfig::OFF,
+            },
+        };
+        gpu.map_step(&batch, res)
+    };
+    match budget {
+        Some(b) => {
+            assert!(pixel_train_loop_bound(frames as u32) > b);
+            let e = step(&mut gpu, frames, &mut res).unwrap_err();
+            assert!(matches!(e, VulkanError::LoopBudget { .. }), "{e}");
+            assert!(e.to_string().contains("mapping window"), "{e}");
+            // the 6-frame window of the conformance tests fits
+            assert!(pixel_train_loop_bound(6) <= b);
+            step(&mut gpu, 6, &mut res).unwrap();
+        }
+        None => {
+            step(&mut gpu, frames, &mut res).unwrap();
+        }
+    }
+}

@@ -162,6 +162,67 @@ pub struct VulkanBackend {
     /// whether they are timed.
     host_times: std::cell::RefCell<Vec<(&'static str, f64, u64)>>,
     profiling: bool,
+    /// Loop iterations one invocation completes on this device (`None`: at least
+    /// [`CANARY_MAX`]), measured at construction by [`measure_loop_budget`].
+    loop_budget: Option<u32>,
+}
+
+/// The longest loop the canary tries (a device that completes it has no budget that matters).
+pub const CANARY_MAX: u32 = 1 << 22;
+
+/// Whether one canary invocation of `n` steps completes on `gpu` (the state and the step
+/// count equal the CPU's).
+fn canary_passes(
+    gpu: &mut Gpu,
+    pipelines: &Pipelines,
+    out: &Buffer,
+    n: u32,
+) -> Result<bool, VulkanError> {
+    let seed = 0x9E37_79B9u32 ^ n;
+    gpu.submit(|r| {
+        r.zero(out);
+        r.barrier();
+        let pipeline = &pipelines.loop_canary;
+        let set = r.bind(pipeline, &[out])?;
+        let push = push_bytes(himap_core::gpu_abi::KernelPush {
+            n,
+            arg: seed,
+            ..Default::default()
+        });
+        r.dispatch(pipeline, &set, &push[..pipeline.push_size()], 1);
+        Ok(())
+    })?;
+    let mut b = [0u8; 8];
+    out.read_mapped(0, &mut b);
+    let got = [
+        u32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+        u32::from_le_bytes([b[4], b[5], b[6], b[7]]),
+    ];
+    Ok(got == himap_core::gpu_abi::loop_canary(n, seed))
+}
+
+/// The device's loop budget: `None` when a loop of [`CANARY_MAX`] iterations completes, else
+/// the largest count that does (binary search, about 22 tiny submissions).
+fn measure_loop_budget(
+    device: &std::sync::Arc<crate::raw::Device>,
+    gpu: &mut Gpu,
+    pipelines: &Pipelines,
+) -> Result<Option<u32>, VulkanError> {
+    let out = Buffer::new(device, 8, Memory::Host, "the loop canary")?;
+    if canary_passes(gpu, pipelines, &out, CANARY_MAX)? {
+        return Ok(None);
+    }
+    // invariant: lo passes (0 always does), hi fails
+    let (mut lo, mut hi) = (0u32, CANARY_MAX);
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        if canary_passes(gpu, pipelines, &out, mid)? {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Ok(Some(lo))
 }
 
 /// Time spent in one named pass ([`VulkanBackend::profile`]).
@@ -231,6 +292,7 @@ impl VulkanBackend {
         let mut gpu = Gpu::new(&device)?;
         let module = ShaderModule::new(&device, &crate::shader_words())?;
         let pipelines = Pipelines::new(&device, &module)?;
+        let loop_budget = measure_loop_budget(&device, &mut gpu, &pipelines)?;
         let w = model_words(&layout, [&part_lens[0], &part_lens[1]]);
         let mut staging = None;
         let mut model_words = Buffer::new(
@@ -279,6 +341,7 @@ impl VulkanBackend {
             gpu,
             host_times: Default::default(),
             profiling: false,
+            loop_budget,
         })
     }
 
@@ -443,6 +506,15 @@ impl VulkanBackend {
             "sample records",
         )?;
         Ok(records)
+    }
+
+    /// The loop iterations one invocation completes on this device, measured at start by the
+    /// loop canary (`loop_canary_cs`): `None` when a loop of [`CANARY_MAX`] completes (a real
+    /// GPU), `Some(n)` on a device that cuts loops (llvmpipe: 65535 per invocation). Mapping
+    /// steps whose warping pass could need more are refused ([`VulkanError::LoopBudget`])
+    /// instead of running silently wrong.
+    pub fn loop_budget(&self) -> Option<u32> {
+        self.loop_budget
     }
 
     /// Times every later submission's passes with timestamp queries, and the host's
@@ -804,6 +876,17 @@ impl Backend for VulkanBackend {
         #[cfg(feature = "fault-injection")]
         crate::fault::map_step()?;
         check_len("results", results.len(), batch.pixels.len())?;
+        if let Some(budget) = self.loop_budget {
+            let frames = batch.poses.len() as u32;
+            let needed = himap_core::gpu_abi::pixel_train_loop_bound(frames);
+            if needed > budget {
+                return Err(VulkanError::LoopBudget {
+                    what: format!("the warping pass over a {frames}-frame mapping window"),
+                    needed,
+                    budget,
+                });
+            }
+        }
         let slots = window_slots(batch, &self.store)?;
         let n = batch.pixels.len();
         let t0 = std::time::Instant::now();

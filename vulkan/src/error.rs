@@ -43,6 +43,13 @@ pub enum VulkanError {
         limit: u64,
         limit_name: &'static str,
     },
+    /// A pass would run more loop iterations in one invocation than this device completes
+    /// (measured at start by the loop canary: llvmpipe cuts every loop after 65535).
+    LoopBudget {
+        what: String,
+        needed: u32,
+        budget: u32,
+    },
     /// An operation the Vulkan backend does not implement yet.
     Unsupported(&'static str),
     /// Invalid input (shapes, sizes): the core's error.
@@ -152,6 +159,18 @@ impl fmt::Display for VulkanError {
                 "{what} needs {bytes} bytes, more than this device's {limit_name} ({limit} \
                  bytes); splitting tensors across bindings is not implemented yet: use a \
                  coarser or factorized grid, {USE_CPU}"
+            ),
+            Self::LoopBudget {
+                what,
+                needed,
+                budget,
+            } => write!(
+                f,
+                "{what} needs up to {needed} loop iterations per invocation, and this device \
+                 cuts loops after {budget} (measured at start; llvmpipe's limit), which would \
+                 silently change the results; use a smaller mapping window \
+                 (mapper.local_frames + mapper.window_keyframes + mapper.global_keyframes), a \
+                 GPU, {USE_CPU}"
             ),
             Self::Unsupported(what) => write!(
                 f,

@@ -14,6 +14,7 @@ use himap_core::gpu_abi::{AdamPush, LossCheckPush, PushWords, RangePush, SampleP
 use himap_core::train::adam::AdamStep;
 
 pub(crate) struct Pipelines {
+    pub(crate) loop_canary: Pipeline,
     pub(crate) sample_forward: Pipeline,
     pub(crate) ray_train: Pipeline,
     pub(crate) sample_backward: Pipeline,
@@ -32,6 +33,7 @@ impl Pipelines {
     pub(crate) fn new(device: &Arc<Device>, module: &ShaderModule) -> Result<Self, VulkanError> {
         let p = |e| Pipeline::new(device, module, e);
         Ok(Self {
+            loop_canary: p(&entry::LOOP_CANARY)?,
             sample_forward: p(&entry::SAMPLE_FORWARD)?,
             ray_train: p(&entry::RAY_TRAIN)?,
             sample_backward: p(&entry::SAMPLE_BACKWARD)?,

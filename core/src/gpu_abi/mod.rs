@@ -298,6 +298,58 @@ impl EntryPoint {
     }
 }
 
+/// The loop of the loop-budget canary (`loop_canary_cs`): `n` steps of a 32-bit LCG from
+/// `seed`, returning the final state and the steps taken. A device that cuts loops short (the
+/// software driver llvmpipe stops every loop of an invocation once 65535 iterations were
+/// spent) returns fewer steps or another state; no compiler can fold the multiply into a
+/// closed form, so the loop really runs.
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::gpu_abi::loop_canary;
+///
+/// assert_eq!(loop_canary(0, 7), [7, 0]);
+/// assert_eq!(loop_canary(1, 0), [1_013_904_223, 1]);
+/// ```
+#[inline(always)]
+pub fn loop_canary(n: u32, seed: u32) -> [u32; 2] {
+    let mut x = seed;
+    let mut i = 0u32;
+    while i < n {
+        x = x.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+        i += 1;
+    }
+    [x, i]
+}
+
+/// Loop iterations one `pixel_train_cs` invocation may run per other frame of the window
+/// (an upper bound, counted over `loss/warp.rs` and `loss/mod.rs` for the full 11x11 patch:
+/// the warp of the patch ~860, the 11x11 and 7x7 SSIM with their backward ~2,400, the
+/// cotangent sums ~1,460; about 4,750, rounded up with a quarter's margin).
+pub const PIXEL_TRAIN_LOOPS_PER_VIEW: u32 = 6_000;
+
+/// Loop iterations of one `pixel_train_cs` invocation independent of the window (compositing
+/// over the samples, the colour, depth-prior and planarity terms): an upper bound.
+pub const PIXEL_TRAIN_LOOPS_BASE: u32 = 4_000;
+
+/// An upper bound on the loop iterations of one `pixel_train_cs` invocation for a window of
+/// `frames` frames, which a device's loop budget must exceed.
+///
+/// # Examples
+///
+/// ```rust
+/// use himap_core::gpu_abi::pixel_train_loop_bound;
+///
+/// // llvmpipe's 65535: a 6-frame window fits, the 20-frame window of `small` does not.
+/// assert!(pixel_train_loop_bound(6) < 65_535);
+/// assert!(pixel_train_loop_bound(20) > 65_535);
+/// ```
+pub const fn pixel_train_loop_bound(frames: u32) -> u32 {
+    let others = if frames == 0 { 0 } else { frames - 1 };
+    PIXEL_TRAIN_LOOPS_BASE + others.saturating_mul(PIXEL_TRAIN_LOOPS_PER_VIEW)
+}
+
 /// Every entry point of the shader module (bindings are documented at each entry point in
 /// `shaders/src/lib.rs`).
 pub mod entry {
@@ -305,6 +357,10 @@ pub mod entry {
 
     /// Toolchain probe: scene words, output.
     pub const PROBE: EntryPoint = EntryPoint::new("probe_cs", 2, size_of::<KernelPush>());
+    /// Loop-budget canary ([`loop_canary`](super::loop_canary) of `n` = push `n`, seed = push
+    /// `arg`): output (2 words: state, steps).
+    pub const LOOP_CANARY: EntryPoint =
+        EntryPoint::new("loop_canary_cs", 1, size_of::<KernelPush>());
     /// Fixed-point atomic accumulation (`acc[i % buckets] += to_fixed(values[i])`): values,
     /// `i64` accumulators.
     pub const FIXED_ACCUMULATE: EntryPoint =
@@ -361,8 +417,9 @@ pub mod entry {
     );
 
     /// All of them.
-    pub const ALL: [EntryPoint; 15] = [
+    pub const ALL: [EntryPoint; 16] = [
         PROBE,
+        LOOP_CANARY,
         FIXED_ACCUMULATE,
         MLP_FORWARD,
         GRID_FORWARD,

@@ -173,7 +173,23 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         reason: decision.reason.clone(),
     };
     if decision.vulkan {
-        match crate::select::vulkan_backend(&data, cfg.adam_config(), store) {
+        let m = &cfg.mapper;
+        let window = m.local_frames + m.window_keyframes + m.global_keyframes;
+        let started =
+            crate::select::vulkan_backend(&data, cfg.adam_config(), store).and_then(|b| {
+                // A device that cuts loops (llvmpipe) could not run this window's warping pass
+                // exactly: refuse now rather than at the first mapping step.
+                let needed = himap_core::gpu_abi::pixel_train_loop_bound(window);
+                match b.loop_budget() {
+                    Some(budget) if needed > budget => Err(himap_vulkan::VulkanError::LoopBudget {
+                        what: format!("the warping pass over the {window}-frame mapping window"),
+                        needed,
+                        budget,
+                    }),
+                    _ => Ok(b),
+                }
+            });
+        match started {
             Ok(backend) => return map_with(opts, ds.as_ref(), ctx, backend),
             // `auto` keeps going on the CPU when the device cannot take the model.
             Err(e) if choice == BackendChoice::Auto => {
