@@ -63,6 +63,15 @@ pub struct DeviceInfo {
     pub vulkan_memory_model: bool,
     /// Required features this device lacks (empty: the backend can use it).
     pub missing: Vec<&'static str>,
+    /// Timestamps on the compute queue (`himap bench --profile`): ns per tick, 0 when none.
+    pub timestamp_period_ns: f32,
+    /// Optional features faster gradient sums could use: 64-bit atomics on workgroup memory,
+    /// workgroup memory (bytes), subgroup size, subgroup arithmetic, 64-bit subgroup types.
+    pub shader_shared_int64_atomics: bool,
+    pub max_compute_shared_memory_size: u32,
+    pub subgroup_size: u32,
+    pub subgroup_arithmetic: bool,
+    pub shader_subgroup_extended_types: bool,
 }
 
 impl DeviceInfo {
@@ -79,6 +88,16 @@ impl DeviceInfo {
             shader_buffer_int64_atomics: p.shader_buffer_int64_atomics,
             vulkan_memory_model: p.vulkan_memory_model,
             missing: p.missing(),
+            timestamp_period_ns: if p.timestamp_valid_bits > 0 {
+                p.timestamp_period
+            } else {
+                0.0
+            },
+            shader_shared_int64_atomics: p.shader_shared_int64_atomics,
+            max_compute_shared_memory_size: p.max_compute_shared_memory_size,
+            subgroup_size: p.subgroup_size,
+            subgroup_arithmetic: p.subgroup_arithmetic,
+            shader_subgroup_extended_types: p.shader_subgroup_extended_types,
         }
     }
 
@@ -133,6 +152,21 @@ pub fn describe_devices() -> String {
             yn(d.shader_int64),
             yn(d.shader_buffer_int64_atomics),
             yn(d.vulkan_memory_model)
+        );
+        let _ = writeln!(
+            s,
+            "    optional: timestamps: {}, shaderSharedInt64Atomics: {}, shared memory: {} KiB, \
+             subgroup size: {}, subgroup arithmetic: {}, shaderSubgroupExtendedTypes: {}",
+            if d.timestamp_period_ns > 0.0 {
+                format!("{} ns per tick", d.timestamp_period_ns)
+            } else {
+                "none".into()
+            },
+            yn(d.shader_shared_int64_atomics),
+            d.max_compute_shared_memory_size >> 10,
+            d.subgroup_size,
+            yn(d.subgroup_arithmetic),
+            yn(d.shader_subgroup_extended_types)
         );
         if d.usable() {
             let _ = writeln!(s, "    usable by himap: yes");
@@ -230,6 +264,12 @@ mod tests {
             shader_buffer_int64_atomics: true,
             vulkan_memory_model: true,
             missing: if usable { vec![] } else { vec!["shaderInt64"] },
+            timestamp_period_ns: 1.0,
+            shader_shared_int64_atomics: false,
+            max_compute_shared_memory_size: 32 << 10,
+            subgroup_size: 32,
+            subgroup_arithmetic: true,
+            shader_subgroup_extended_types: false,
         }
     }
 

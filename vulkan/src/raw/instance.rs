@@ -26,6 +26,13 @@ pub(crate) struct PhysicalInfo {
     pub timestamp_period: f32,
     /// Valid bits of the compute queue's timestamps (0: no timestamps on that queue).
     pub timestamp_valid_bits: u32,
+    /// What faster gradient sums could use (not required): 64-bit atomics on workgroup
+    /// memory, the workgroup memory size, the subgroup size and operations.
+    pub shader_shared_int64_atomics: bool,
+    pub max_compute_shared_memory_size: u32,
+    pub subgroup_size: u32,
+    pub subgroup_arithmetic: bool,
+    pub shader_subgroup_extended_types: bool,
 }
 
 impl PhysicalInfo {
@@ -112,9 +119,13 @@ impl Instance {
                 .map(|s| s.to_string_lossy().into_owned())
                 .unwrap_or_else(|_| "<unnamed>".to_string());
             let mut maint3 = vk::PhysicalDeviceMaintenance3Properties::default();
+            let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
             let (mut shader_int64, mut atomics64, mut memory_model) = (false, false, false);
+            let (mut shared64, mut extended_types) = (false, false);
             if props.api_version >= vk::API_VERSION_1_1 {
-                let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut maint3);
+                let mut p2 = vk::PhysicalDeviceProperties2::default()
+                    .push_next(&mut maint3)
+                    .push_next(&mut subgroup);
                 // SAFETY: the device supports Vulkan 1.1 (core `vkGetPhysicalDeviceProperties2`)
                 // and the instance is 1.2; `p2` chains only structures of Vulkan 1.1 core.
                 unsafe { self.instance.get_physical_device_properties2(pd, &mut p2) };
@@ -128,6 +139,8 @@ impl Instance {
                 shader_int64 = f2.features.shader_int64 == vk::TRUE;
                 atomics64 = v12.shader_buffer_int64_atomics == vk::TRUE;
                 memory_model = v12.vulkan_memory_model == vk::TRUE;
+                shared64 = v12.shader_shared_int64_atomics == vk::TRUE;
+                extended_types = v12.shader_subgroup_extended_types == vk::TRUE;
             }
             // SAFETY: `pd` is a valid physical device of this instance.
             let families = unsafe {
@@ -173,6 +186,13 @@ impl Instance {
                 vulkan_memory_model: memory_model,
                 timestamp_period: props.limits.timestamp_period,
                 timestamp_valid_bits,
+                shader_shared_int64_atomics: shared64,
+                max_compute_shared_memory_size: props.limits.max_compute_shared_memory_size,
+                subgroup_size: subgroup.subgroup_size,
+                subgroup_arithmetic: subgroup
+                    .supported_operations
+                    .contains(vk::SubgroupFeatureFlags::ARITHMETIC),
+                shader_subgroup_extended_types: extended_types,
             });
         }
         Ok(out)
