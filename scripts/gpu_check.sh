@@ -72,6 +72,7 @@ for t in gpu_bin/test-conformance gpu_bin/test-vulkan gpu_bin/test-query; do
 done
 step 120 "$bin" bench --backend all --config paper --profile --steps 5
 step 120 "$bin" bench --backend vulkan --config step --profile --steps 5
+HIMAP_BENCH_GLOBAL_ATOMICS=1 step 120 "$bin" bench --backend vulkan --config paper --profile --steps 5
 icl=../shared/data/icl-livingroom1
 step 240 "$bin" map "$icl" --preset paper --backend vulkan --frames 0:40 --out "$out/icl40_gpu"
 step 300 "$bin" map "$icl" --preset paper --backend cpu --frames 0:40 --out "$out/icl40_cpu"

@@ -187,10 +187,24 @@ pub fn bench_vulkan(
 ) -> anyhow::Result<(BenchRow, Option<Profile>)> {
     let layout = ModelLayout::new(cfg)?;
     let data = ModelData::new(layout, 1)?;
-    let mut be = himap_vulkan::VulkanBackend::new(layout, data.param_slices(), paper_adam())?;
+    // HIMAP_BENCH_GLOBAL_ATOMICS=1: the backward with one global atomic per contribution,
+    // to compare with the workgroup-summed one the device would otherwise use.
+    let options = himap_vulkan::VulkanOptions {
+        global_atomics_only: std::env::var("HIMAP_BENCH_GLOBAL_ATOMICS").is_ok_and(|v| v == "1"),
+        ..Default::default()
+    };
+    let mut be = himap_vulkan::VulkanBackend::with_options(
+        layout,
+        data.param_slices(),
+        paper_adam(),
+        options,
+    )?;
     let t = measure(&mut be, cfg, rays, steps)?;
     let batch_bytes = rays * (10 + 6) * 4 + rays * cfg.samples as usize * 9 * 4;
-    let r = row(be.name(), name, cfg, &layout, rays, batch_bytes, t);
+    let mut r = row(be.name(), name, cfg, &layout, rays, batch_bytes, t);
+    if !be.workgroup_sums() {
+        r.backend += " (global atomics)";
+    }
     if !profile {
         return Ok((r, None));
     }

@@ -60,6 +60,9 @@ fn recording_holds_cameras_renders_metrics_and_meshes() {
                 .extend(c.timelines().keys().map(|t| t.to_string()));
         }
     }
+    for (k, e) in &entities {
+        eprintln!("{k}: {} rows, {:?}", e.rows, e.components);
+    }
     let get = |p: &str| {
         entities
             .get(p)

@@ -44,7 +44,7 @@ use himap_core::train::adam;
 use himap_core::train::fixed;
 use himap_core::train::pixel::{self, PixelResult, PixelSample, WindowImages, WindowView};
 use himap_core::{rng, Aabb, GradSink, ParamRead};
-use spirv_std::arch::atomic_i_add;
+use spirv_std::arch::{atomic_i_add, workgroup_memory_barrier_with_group_sync};
 use spirv_std::glam::UVec3;
 use spirv_std::memory::{Scope, Semantics};
 use spirv_std::spirv;
@@ -702,6 +702,173 @@ pub fn sample_backward_cs(
         &mut scratch,
         &mut sink,
     );
+}
+
+/// Decoder-weight gradients a workgroup of [`sample_backward_wg_cs`] sums in workgroup memory:
+/// 2048 `i64` (16 KiB, the smallest `maxComputeSharedMemorySize` Vulkan allows).
+pub const WORKGROUP_MLP_SLOTS: usize = himap_core::gpu_abi::WORKGROUP_MLP_SLOTS;
+
+/// [`AtomicModelSink`] whose decoder-weight contributions go to workgroup memory first: the
+/// geometry decoder's at `0..geo`, then the appearance decoder's at `geo..geo + app` when the
+/// two fit [`WORKGROUP_MLP_SLOTS`] (`app_shared`); others go straight to the global buffers.
+pub struct WorkgroupModelSink<'a, 'b> {
+    pub global: AtomicModelSink<'a>,
+    pub shared: &'b mut [i64; WORKGROUP_MLP_SLOTS],
+    pub geo_shared: bool,
+    pub app_shared: bool,
+    pub geo_len: usize,
+}
+
+#[inline(always)]
+fn atomic_add_shared(acc: &mut [i64; WORKGROUP_MLP_SLOTS], i: usize, q: i64) {
+    if i < WORKGROUP_MLP_SLOTS {
+        unsafe {
+            atomic_i_add::<i64, { Scope::Workgroup as u32 }, { Semantics::NONE.bits() }>(
+                &mut acc[i],
+                q,
+            );
+        }
+    }
+}
+
+impl ModelGradSink for WorkgroupModelSink<'_, '_> {
+    #[inline(always)]
+    fn add(&mut self, group: Group, i: usize, g: f32) {
+        match group {
+            Group::GeometryMlp if self.geo_shared => {
+                let q = fixed::to_fixed(g);
+                if q != 0 {
+                    atomic_add_shared(self.shared, i, q);
+                }
+            }
+            Group::AppearanceMlp if self.app_shared => {
+                let q = fixed::to_fixed(g);
+                if q != 0 {
+                    atomic_add_shared(self.shared, self.geo_len + i, q);
+                }
+            }
+            _ => self.global.add(group, i, g),
+        }
+    }
+}
+
+/// [`sample_backward_cs`] with the decoders' weight gradients summed per workgroup in
+/// workgroup memory (64-bit atomics there), then one global atomic per weight the workgroup
+/// touched, instead of one per contribution: integer sums in any order, so the same bits.
+/// Used on devices with `shaderSharedInt64Atomics`. Every invocation reaches both barriers
+/// (no early return); which decoders use the workgroup memory depends only on the model
+/// words, so the control flow around the barriers is uniform. Bindings as
+/// [`sample_backward_cs`].
+#[spirv(compute(threads(64)))]
+#[allow(clippy::too_many_arguments)]
+pub fn sample_backward_wg_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(local_invocation_index)] lid: u32,
+    #[spirv(push_constant)] pc: &SamplePush,
+    #[spirv(workgroup)] shared: &mut [i64; WORKGROUP_MLP_SLOTS],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_geometry_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] p_geometry_grid_hi: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] p_appearance_grid: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] p_appearance_grid_hi: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] p_geometry_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] p_appearance_mlp: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] g_geometry_grid: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] g_geometry_grid_hi: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 10)] g_appearance_grid: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 11)] g_appearance_grid_hi: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 12)] g_geometry_mlp: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 13)] g_appearance_mlp: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 14)] g_beta: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 15)] rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 16)] samples: &[f32],
+) {
+    let layout = words::model_layout_from_words(model_words, 0);
+    let geo_len = layout.geometry_mlp.param_count as usize;
+    let app_len = layout.appearance_mlp.param_count as usize;
+    let geo_shared = geo_len <= WORKGROUP_MLP_SLOTS;
+    let app_shared = geo_shared && geo_len + app_len <= WORKGROUP_MLP_SLOTS;
+    let used = if app_shared {
+        geo_len + app_len
+    } else if geo_shared {
+        geo_len
+    } else {
+        0
+    };
+    let mut k = lid as usize;
+    while k < used {
+        shared[k] = 0;
+        k += WORKGROUP_SIZE as usize;
+    }
+    workgroup_memory_barrier_with_group_sync();
+    let i = (pc.first + id.x) as usize;
+    let b = i * SAMPLE_FLOATS;
+    let mut active = id.x < pc.n && b + SAMPLE_FLOATS <= samples.len();
+    let (mut d_sdf, mut d_rgb) = (0.0f32, [0.0f32; 3]);
+    if active {
+        d_sdf = samples[b + 5];
+        d_rgb = [samples[b + 6], samples[b + 7], samples[b + 8]];
+        active = !(d_sdf == 0.0 && d_rgb[0] == 0.0 && d_rgb[1] == 0.0 && d_rgb[2] == 0.0);
+    }
+    let field = Field::new(
+        model_words,
+        [
+            p_geometry_grid,
+            p_geometry_grid_hi,
+            p_appearance_grid,
+            p_appearance_grid_hi,
+            p_geometry_mlp,
+            p_appearance_mlp,
+            p_beta,
+        ],
+    );
+    let mut sink = WorkgroupModelSink {
+        global: AtomicModelSink {
+            geometry_grid: g_geometry_grid,
+            geometry_grid_hi: g_geometry_grid_hi,
+            geometry_split: field.geo.split,
+            appearance_grid: g_appearance_grid,
+            appearance_grid_hi: g_appearance_grid_hi,
+            appearance_split: field.app.split,
+            geometry_mlp: g_geometry_mlp,
+            appearance_mlp: g_appearance_mlp,
+            beta: g_beta,
+        },
+        shared,
+        geo_shared,
+        app_shared,
+        geo_len,
+    };
+    if active {
+        let per = samples_per_ray(&layout);
+        let ray = read_ray(rays, i / per);
+        let params = field.params();
+        let mut scratch = SampleScratch::new();
+        model::sample_backward(
+            &layout,
+            &params,
+            &ray,
+            samples[b],
+            d_sdf,
+            d_rgb,
+            &mut scratch,
+            &mut sink,
+        );
+    }
+    workgroup_memory_barrier_with_group_sync();
+    let mut k = lid as usize;
+    while k < used {
+        let q = sink.shared[k];
+        if q != 0 {
+            if k < geo_len {
+                atomic_add_i64(sink.global.geometry_mlp, k, q);
+            } else {
+                atomic_add_i64(sink.global.appearance_mlp, k - geo_len, q);
+            }
+        }
+        k += WORKGROUP_SIZE as usize;
+    }
 }
 
 /// Pass 2 of a render: one ray per invocation, composited from its sample records at the bin

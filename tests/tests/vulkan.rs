@@ -229,8 +229,11 @@ fn grids_split_across_two_bindings_match_cpu() {
     }
     drop(probe);
     let params = data.param_slices();
+    // (the global-atomics backward here; the conformance suite runs the workgroup-summed
+    // one where the device has it)
     let options = VulkanOptions {
         max_binding_bytes: Some(part as u64 * 8),
+        global_atomics_only: true,
     };
     let mut gpu = VulkanBackend::with_options(data.layout, params, adam, options).unwrap();
     let mut reference = Reference::new(&data, ImageStore::default());
@@ -277,6 +280,7 @@ fn grids_split_across_two_bindings_match_cpu() {
     // a grid that needs more than two bindings is an error naming the limit
     let tiny = VulkanOptions {
         max_binding_bytes: Some((geo as u64 * 8) / 3),
+        ..VulkanOptions::default()
     };
     let e = VulkanBackend::with_options(data.layout, params, adam, tiny)
         .err()
@@ -424,5 +428,93 @@ fn the_loop_canary_measures_the_budget_and_guards_the_warping_pass() {
         None => {
             step(&mut gpu, frames, &mut res).unwrap();
         }
+    }
+}
+
+/// The workgroup-summed backward (`sample_backward_wg_cs`: decoder-weight gradients summed in
+/// workgroup memory, one global atomic per weight and workgroup) gives the same gradients,
+/// parameters and results as one global atomic per contribution and as the CPU, for a model
+/// whose two decoders fit the workgroup memory (the small one) and for the paper's, where
+/// only the geometry decoder does.
+#[test]
+fn workgroup_summed_backward_equals_global_atomics_and_the_cpu() {
+    use himap::backend::ModelData;
+    use himap_core::field::model::ModelLayout;
+    use himap_core::gpu_abi::WORKGROUP_MLP_SLOTS;
+
+    let (small, small_rays) = setup(RenderMode::SdfDensity, 9, 96);
+    let paper_cfg = himap::bench::configs()
+        .into_iter()
+        .find(|(n, _)| n.starts_with("paper"))
+        .unwrap()
+        .1;
+    let paper_layout = ModelLayout::new(&paper_cfg).unwrap();
+    let paper = ModelData::new(paper_layout, 4).unwrap();
+    let paper_rays = himap::bench::rays_in(&paper_cfg.aabb, 12, 11);
+    let adam = test_adam();
+    for (name, data, rays) in [
+        ("small", &small, &small_rays),
+        ("paper", &paper, &paper_rays),
+    ] {
+        let l = data.layout;
+        let (geo, app) = (
+            l.group_len(Group::GeometryMlp),
+            l.group_len(Group::AppearanceMlp),
+        );
+        eprintln!("{name}: decoders {geo} + {app} weights, {WORKGROUP_MLP_SLOTS} slots");
+        let Some(mut wg) = vulkan_or_skip(data, adam) else {
+            return;
+        };
+        let mut global = VulkanBackend::with_options(
+            l,
+            data.param_slices(),
+            adam,
+            VulkanOptions {
+                global_atomics_only: true,
+                ..VulkanOptions::default()
+            },
+        )
+        .unwrap();
+        assert!(!global.workgroup_sums());
+        let mut cpu = ParallelCpuBackend::new(data.clone(), adam, 2).unwrap();
+        let n = rays.len();
+        let (mut rw, mut rg, mut rc) = (
+            vec![RayResult::default(); n],
+            vec![RayResult::default(); n],
+            vec![RayResult::default(); n],
+        );
+        for step in 0..if name == "small" { 2 } else { 1 } {
+            let loss = loss_config(step, n);
+            wg.train_step(rays, &loss, &mut rw).unwrap();
+            global.train_step(rays, &loss, &mut rg).unwrap();
+            cpu.train_step(rays, &loss, &mut rc).unwrap();
+            assert_same_f32(
+                &format!("{name} results"),
+                &result_floats(&rw),
+                &result_floats(&rg),
+            );
+            assert_same_f32(
+                &format!("{name} results (cpu)"),
+                &result_floats(&rc),
+                &result_floats(&rw),
+            );
+        }
+        for g in Group::ALL {
+            let len = l.group_len(g);
+            let (mut a, mut b, mut c) = (vec![0i64; len], vec![0i64; len], vec![0i64; len]);
+            wg.read_grads(g, &mut a).unwrap();
+            global.read_grads(g, &mut b).unwrap();
+            cpu.read_grads(g, &mut c).unwrap();
+            assert_eq!(a, b, "{name} {} gradients", g.name());
+            assert_eq!(c, a, "{name} {} gradients (cpu)", g.name());
+            if matches!(g, Group::GeometryMlp | Group::AppearanceMlp) {
+                assert!(
+                    a.iter().any(|&q| q != 0),
+                    "{name} {}: no gradient",
+                    g.name()
+                );
+            }
+        }
+        eprintln!("{name}: workgroup sums {}", wg.workgroup_sums());
     }
 }

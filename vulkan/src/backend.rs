@@ -62,6 +62,10 @@ pub struct VulkanOptions {
     /// `maxStorageBufferRange`, at most `maxMemoryAllocationSize`). Lower values force the
     /// grids to be split across two bindings (used by the tests).
     pub max_binding_bytes: Option<u64>,
+    /// Add every decoder-weight contribution with a global atomic even where the device
+    /// could sum them per workgroup first (`shaderSharedInt64Atomics`); the same bits either
+    /// way (tests compare the two).
+    pub global_atomics_only: bool,
 }
 
 /// The largest storage-buffer binding a group may use, and the name of the limit that sets it
@@ -291,7 +295,7 @@ impl VulkanBackend {
         let part_lens = limit.split(lens)?;
         let mut gpu = Gpu::new(&device)?;
         let module = ShaderModule::new(&device, &crate::shader_words())?;
-        let pipelines = Pipelines::new(&device, &module)?;
+        let pipelines = Pipelines::new(&device, &module, !options.global_atomics_only)?;
         let loop_budget = measure_loop_budget(&device, &mut gpu, &pipelines)?;
         let w = model_words(&layout, [&part_lens[0], &part_lens[1]]);
         let mut staging = None;
@@ -506,6 +510,12 @@ impl VulkanBackend {
             "sample records",
         )?;
         Ok(records)
+    }
+
+    /// Whether the per-sample backward sums the decoders' weight gradients per workgroup in
+    /// workgroup memory before the global atomics (`sample_backward_wg_cs`).
+    pub fn workgroup_sums(&self) -> bool {
+        self.pipelines.sample_backward_wg.is_some()
     }
 
     /// The loop iterations one invocation completes on this device, measured at start by the

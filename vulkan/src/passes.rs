@@ -18,6 +18,9 @@ pub(crate) struct Pipelines {
     pub(crate) sample_forward: Pipeline,
     pub(crate) ray_train: Pipeline,
     pub(crate) sample_backward: Pipeline,
+    /// `sample_backward_wg_cs`, on devices with `shaderSharedInt64Atomics` unless the
+    /// options ask for the global-atomics pass.
+    pub(crate) sample_backward_wg: Option<Pipeline>,
     pub(crate) ray_render: Pipeline,
     pub(crate) pixel_rays: Pipeline,
     pub(crate) pixel_train: Pipeline,
@@ -30,13 +33,23 @@ pub(crate) struct Pipelines {
 
 impl Pipelines {
     /// Every pipeline of the backend's passes, from the module's entry points.
-    pub(crate) fn new(device: &Arc<Device>, module: &ShaderModule) -> Result<Self, VulkanError> {
+    pub(crate) fn new(
+        device: &Arc<Device>,
+        module: &ShaderModule,
+        workgroup_sums: bool,
+    ) -> Result<Self, VulkanError> {
         let p = |e| Pipeline::new(device, module, e);
+        let wg = workgroup_sums && device.info.shader_shared_int64_atomics;
         Ok(Self {
             loop_canary: p(&entry::LOOP_CANARY)?,
             sample_forward: p(&entry::SAMPLE_FORWARD)?,
             ray_train: p(&entry::RAY_TRAIN)?,
             sample_backward: p(&entry::SAMPLE_BACKWARD)?,
+            sample_backward_wg: if wg {
+                Some(p(&entry::SAMPLE_BACKWARD_WG)?)
+            } else {
+                None
+            },
             ray_render: p(&entry::RAY_RENDER)?,
             pixel_rays: p(&entry::PIXEL_RAYS)?,
             pixel_train: p(&entry::PIXEL_TRAIN)?,
@@ -193,7 +206,10 @@ impl<'a> Passes<'a> {
 
     /// Pass 3: `sample_backward_cs` over every sample record.
     pub(crate) fn sample_backward(&self, r: &mut Recorder<'a>) -> Result<(), VulkanError> {
-        let pipeline = &self.pipelines.sample_backward;
+        let pipeline = match &self.pipelines.sample_backward_wg {
+            Some(p) => p,
+            None => &self.pipelines.sample_backward,
+        };
         let set = r.bind(
             pipeline,
             &[

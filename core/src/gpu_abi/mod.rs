@@ -323,6 +323,12 @@ pub fn loop_canary(n: u32, seed: u32) -> [u32; 2] {
     [x, i]
 }
 
+/// Decoder-weight gradients one workgroup of `sample_backward_wg_cs` sums in workgroup memory
+/// before adding them to the global buffers: 2048 `i64` (16 KiB, the smallest
+/// `maxComputeSharedMemorySize` a Vulkan device may have). The geometry decoder uses it when
+/// it fits, the appearance decoder when both fit.
+pub const WORKGROUP_MLP_SLOTS: usize = 2048;
+
 /// Loop iterations one `pixel_train_cs` invocation may run per other frame of the window
 /// (an upper bound, counted over `loss/warp.rs` and `loss/mod.rs` for the full 11x11 patch:
 /// the warp of the patch ~860, the 11x11 and 7x7 SSIM with their backward ~2,400, the
@@ -380,7 +386,16 @@ pub mod entry {
     /// Composite, loss and compositing backward of a training step's rays: model words,
     /// beta, beta gradient, rays, sample records, results.
     pub const RAY_TRAIN: EntryPoint = EntryPoint::new("ray_train_cs", 6, size_of::<TrainPush>());
-    /// Model words, [`PARAM_BINDINGS`], their gradients, rays, sample records.
+    /// Per-sample backward with the decoders' weight gradients summed per workgroup first
+    /// (devices with `shaderSharedInt64Atomics`): model words, [`PARAM_BINDINGS`], their
+    /// gradients, rays, sample records.
+    pub const SAMPLE_BACKWARD_WG: EntryPoint = EntryPoint::new(
+        "sample_backward_wg_cs",
+        1 + 2 * PARAM_BINDINGS as u32 + 2,
+        size_of::<SamplePush>(),
+    );
+    /// Per-sample backward, every contribution with a global atomic: model words,
+    /// [`PARAM_BINDINGS`], their gradients, rays, sample records.
     pub const SAMPLE_BACKWARD: EntryPoint = EntryPoint::new(
         "sample_backward_cs",
         1 + 2 * PARAM_BINDINGS as u32 + 2,
@@ -417,7 +432,8 @@ pub mod entry {
     );
 
     /// All of them.
-    pub const ALL: [EntryPoint; 16] = [
+    pub const ALL: [EntryPoint; 17] = [
+        SAMPLE_BACKWARD_WG,
         PROBE,
         LOOP_CANARY,
         FIXED_ACCUMULATE,

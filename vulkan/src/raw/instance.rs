@@ -245,7 +245,9 @@ impl Device {
             .queue_priorities(&priorities)];
         let mut v12 = vk::PhysicalDeviceVulkan12Features::default()
             .vulkan_memory_model(true)
-            .shader_buffer_int64_atomics(true);
+            .shader_buffer_int64_atomics(true)
+            // optional: the workgroup-summed backward pass (`sample_backward_wg_cs`)
+            .shader_shared_int64_atomics(info.shader_shared_int64_atomics);
         let mut f2 = vk::PhysicalDeviceFeatures2::default()
             .features(vk::PhysicalDeviceFeatures::default().shader_int64(true))
             .push_next(&mut v12);
