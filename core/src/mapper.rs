@@ -193,6 +193,15 @@ pub struct MapperConfig {
     /// initial surface (the sphere) still receive gradients, so the true surfaces behind it
     /// can emerge while the geometry is first found.
     pub init_min_transmittance: f32,
+    /// Iterations of the final refinement [`Mapper::refine`] runs after the last frame
+    /// (0 = none, the paper's): windows of `refine_window` held frames (keyframe cache and
+    /// local frames) neighbouring in time around a random one, `refine_block` iterations
+    /// each, so that every region the camera saw gets steps again after the camera left it.
+    pub refine_iters: u32,
+    /// Frames per window of the final refinement (>= 2 when `refine_iters` > 0).
+    pub refine_window: u32,
+    /// Iterations per window of the final refinement (>= 1 when `refine_iters` > 0).
+    pub refine_block: u32,
 }
 
 impl MapperConfig {
@@ -234,6 +243,9 @@ impl MapperConfig {
             rejected_lr_after: 3,
             rejected_lr_factor: 0.5,
             init_min_transmittance: 0.0,
+            refine_iters: 0,
+            refine_window: 8,
+            refine_block: 10,
         }
     }
 
@@ -300,6 +312,18 @@ impl MapperConfig {
             MAX_WINDOW,
         )?;
         cap("mapper init_frames", self.init_frames as u64, MAX_WINDOW)?;
+        if self.refine_iters > 0 {
+            if self.refine_window < 2 || self.refine_block == 0 {
+                return Err(Error::InvalidConfig(
+                    "mapper: refine_window must be >= 2 and refine_block >= 1 when refine_iters > 0",
+                ));
+            }
+            cap(
+                "mapper refine_window",
+                self.refine_window as u64,
+                MAX_WINDOW,
+            )?;
+        }
         cap(
             "mapper max_keyframes",
             self.max_keyframes as u64,
@@ -403,6 +427,8 @@ pub enum UpdateKind {
     Init,
     /// An online update of the sliding window.
     Online,
+    /// The final refinement over every held frame ([`Mapper::refine`]).
+    Refine,
 }
 
 /// Progress of one iteration (passed to the observer of [`Mapper::push_frame_observed`]).
@@ -766,6 +792,50 @@ impl<'a, B: Backend> Mapper<'a, B> {
             return self.online_update(observe).map(Some);
         }
         Ok(None)
+    }
+
+    /// The final refinement (after the last frame and [`Self::flush`]; `None` when
+    /// `refine_iters` is 0 or the map is not initialised): `refine_iters` iterations over the
+    /// frames the mapper holds (the keyframe cache and the local frames, in push order), in
+    /// blocks of `refine_block` iterations whose window is a random held frame and its
+    /// neighbours in push order (`refine_window` frames). Pixels are spread evenly over the
+    /// window and the online losses apply. An online map forgets: later views rewrite the
+    /// appearance of regions the camera has left; this gives every region steps with its own
+    /// views again once nothing new arrives. It reads nothing but frames already pushed.
+    pub fn refine<F: FnMut(&IterInfo)>(
+        &mut self,
+        observe: &mut F,
+    ) -> Result<Option<UpdateReport>, MapperError<B::Error>> {
+        let iters = self.cfg.refine_iters;
+        if iters == 0 || !self.st.initialized {
+            return Ok(None);
+        }
+        let n = self.st.keyframes.len() + self.st.local.len();
+        let w = (self.cfg.refine_window as usize).min(n);
+        let (mut first, mut last) = (None, None);
+        let mut done = 0;
+        while done < iters {
+            let anchor = self.rng.below(n as u32) as usize;
+            let start = anchor.saturating_sub(w / 2).min(n - w);
+            self.clear_window();
+            for i in start..start + w {
+                // keyframes (oldest first) come before the local frames in push order
+                let e = match self.st.keyframes.get(i) {
+                    Some(e) => *e,
+                    None => self.st.local[i - self.st.keyframes.len()],
+                };
+                self.add_to_window(e);
+            }
+            let block = self.cfg.refine_block.min(iters - done);
+            let (f, l) = self.run_iters(UpdateKind::Refine, block, observe)?;
+            first.get_or_insert(f);
+            last = Some(l);
+            done += block;
+        }
+        let (Some(first), Some(last)) = (first, last) else {
+            return Ok(None);
+        };
+        Ok(Some(self.report(UpdateKind::Refine, iters, first, last, 0)))
     }
 
     fn initialise<F: FnMut(&IterInfo)>(
@@ -1617,6 +1687,83 @@ mod tests {
         s.dedup();
         assert_eq!(s.len(), last.len());
         assert!(m.backend().uploads.iter().all(|&s| s < c.slots_needed()));
+    }
+
+    /// The final refinement runs `refine_iters` steps in blocks, each over `refine_window`
+    /// held frames consecutive in push order (slots of keyframes and local frames), with
+    /// the online losses and pixels spread evenly; nothing when it is off or before the
+    /// initialisation.
+    #[test]
+    fn refinement_steps_through_windows_of_neighbouring_held_frames() {
+        let mut c = cfg();
+        c.refine_iters = 25;
+        c.refine_window = 4;
+        c.refine_block = 10;
+        let (mut px, mut res) = buffers();
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 10);
+        assert!(m.refine(&mut |_| {}).unwrap().is_none(), "not initialised");
+        push_n(&mut m, 60);
+        m.flush(&mut |_| {}).unwrap();
+        let held: Vec<u32> = m.keyframe_ids().chain(m.local_ids()).collect();
+        assert!(held.windows(2).all(|w| w[0] < w[1]), "{held:?}");
+        // slot of each held frame, in push order
+        let slots: Vec<u32> = m
+            .state()
+            .keyframes
+            .iter()
+            .chain(m.state().local.iter())
+            .map(|e| e.slot)
+            .collect();
+        let before = m.backend().calls.len();
+        let mut kinds = Vec::new();
+        let r = m
+            .refine(&mut |i| kinds.push((i.kind, i.iter, i.iters)))
+            .unwrap();
+        let r = r.expect("a refinement");
+        assert_eq!((r.kind, r.iters), (UpdateKind::Refine, 25));
+        let calls = &m.backend().calls[before..];
+        assert_eq!(calls.len(), 25);
+        assert_eq!(kinds.len(), 25);
+        // blocks of 10, 10, 5 iterations, each on one window
+        assert_eq!(kinds[9], (UpdateKind::Refine, 9, 10));
+        assert_eq!(kinds[24], (UpdateKind::Refine, 4, 5));
+        let mut starts = Vec::new();
+        for (b, block) in [&calls[0..10], &calls[10..20], &calls[20..25]]
+            .into_iter()
+            .enumerate()
+        {
+            let w = &block[0].slots;
+            assert!(block.iter().all(|c| &c.slots == w), "block {b}");
+            let start = slots.iter().position(|s| *s == w[0]).unwrap();
+            assert_eq!(w.as_slice(), &slots[start..start + 4], "block {b}");
+            starts.push(start);
+            for call in block {
+                assert_eq!(call.lambda_color, 0.001);
+                assert!(!call.color_to_geometry);
+                // 60 pixels spread evenly: 15 per window frame
+                for f in 0..4 {
+                    assert_eq!(call.pixels.iter().filter(|p| p.frame == f).count(), 15);
+                }
+            }
+        }
+        assert!(
+            starts.iter().any(|s| *s != starts[0]),
+            "random windows {starts:?}"
+        );
+        // off: nothing
+        let mut c = cfg();
+        c.refine_iters = 0;
+        let (mut px, mut res) = buffers();
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 20);
+        assert!(m.refine(&mut |_| {}).unwrap().is_none());
+        // a window of one frame or blocks of none are refused
+        for (w, b) in [(1, 10), (4, 0)] {
+            let mut c = cfg();
+            (c.refine_iters, c.refine_window, c.refine_block) = (5, w, b);
+            assert!(refused(c), "window {w}, block {b}");
+        }
     }
 
     #[test]

@@ -178,6 +178,9 @@ struct MapperDef {
     rejected_lr_after: u32,
     rejected_lr_factor: f32,
     init_min_transmittance: f32,
+    refine_iters: u32,
+    refine_window: u32,
+    refine_block: u32,
     max_keyframes: u32,
     #[serde(with = "OverflowDef")]
     keyframe_overflow: KeyframeOverflow,

@@ -821,6 +821,12 @@ pub fn grid_forward_rows(
     }
     let (xn, _) = normalize_with_mask(&layout.aabb, p);
     *out = [0.0; MAX_GRID_FEATURES];
+    if nc < NARROW_CHANNELS && nl * nc <= LANES {
+        if !narrow_forward(layout, params, xn, out) {
+            grid_forward(layout, params, p, out);
+        }
+        return;
+    }
     let mut l = 0;
     while l < nl {
         let lv = &layout.level[l];
@@ -834,6 +840,85 @@ pub fn grid_forward_rows(
         }
         l += 1;
     }
+}
+
+/// Lanes of the narrow-grid forms: every (level, channel) feature of a grid with at most this
+/// many features is one lane.
+const LANES: usize = 16;
+
+/// Grids with fewer channels per level than this (the geometry grid's 2) take the narrow
+/// forms: a level's channels alone fill too few SIMD lanes, all levels together fill them.
+const NARROW_CHANNELS: usize = 8;
+
+/// The 18 corner values (planes xy, xz, yz as in [`VmValues`], then lines x, y, z) and the
+/// 3 cell fractions of every (level, channel) lane of a narrow grid.
+struct NarrowLanes {
+    v: [[f32; LANES]; 18],
+    f: [[f32; LANES]; 3],
+}
+
+impl NarrowLanes {
+    /// Gathers the lanes at the normalized position `xn`; `None` for a corrupted layout.
+    #[inline(always)]
+    fn gather(layout: &GridLayout, params: &[f32], xn: [f32; 3]) -> Option<Self> {
+        let (nl, nc) = kernel_dims(layout);
+        let mut g = NarrowLanes {
+            v: [[0.0; LANES]; 18],
+            f: [[0.0; LANES]; 3],
+        };
+        for l in 0..nl {
+            let lv = &layout.level[l];
+            let cell = locate(xn, lv.res);
+            let r = vm_rows(params, &vm_corners(lv, nc, &cell), nc)?;
+            for c in 0..nc {
+                let lane = l * nc + c;
+                for (j, row) in r.iter().enumerate() {
+                    g.v[j][lane] = row[c];
+                }
+                for a in 0..3 {
+                    g.f[a][lane] = cell.f[a];
+                }
+            }
+        }
+        Some(g)
+    }
+
+    /// [`vm_interp`] of lane `i`: the same operations.
+    #[inline(always)]
+    fn interp(&self, i: usize) -> ([f32; 3], [f32; 3]) {
+        let v = &self.v;
+        let vals = VmValues {
+            xy: [v[0][i], v[1][i], v[2][i], v[3][i]],
+            xz: [v[4][i], v[5][i], v[6][i], v[7][i]],
+            yz: [v[8][i], v[9][i], v[10][i], v[11][i]],
+            x: [v[12][i], v[13][i]],
+            y: [v[14][i], v[15][i]],
+            z: [v[16][i], v[17][i]],
+        };
+        vm_interp(&vals, [self.f[0][i], self.f[1][i], self.f[2][i]])
+    }
+}
+
+/// [`grid_forward_rows`] of a narrow grid: all features in lanes (each lane the operations of
+/// [`grid_forward`]'s channel, unused lanes compute on zeros). False for a corrupted layout.
+#[inline(always)]
+fn narrow_forward(
+    layout: &GridLayout,
+    params: &[f32],
+    xn: [f32; 3],
+    out: &mut [f32; MAX_GRID_FEATURES],
+) -> bool {
+    let (nl, nc) = kernel_dims(layout);
+    let Some(g) = NarrowLanes::gather(layout, params, xn) else {
+        return false;
+    };
+    let mut o = [0.0f32; LANES];
+    for (i, o) in o.iter_mut().enumerate() {
+        let (line, plane) = g.interp(i);
+        *o = line[0] * plane[2] + line[1] * plane[1] + line[2] * plane[0];
+    }
+    out[..nl * nc].copy_from_slice(&o[..nl * nc]);
+    true
 }
 
 /// Calls `f` with the first index of every row of channels that [`grid_forward_rows`] reads
@@ -1019,6 +1104,21 @@ mod tests {
             levels: 1,
             channels,
             cell_sizes: [0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        };
+        GridLayout::new(&cfg, small_box()).unwrap()
+    }
+
+    /// A factorized grid of `n` levels (0.25 m, 0.35 m, ...) with `channels` each.
+    fn levels(n: usize, channels: u32) -> GridLayout {
+        let mut cell_sizes = [0.0f32; MAX_LEVELS];
+        for (l, c) in cell_sizes.iter_mut().take(n).enumerate() {
+            *c = 0.25 + 0.1 * l as f32;
+        }
+        let cfg = GridConfig {
+            kind: GridKind::Factorized,
+            levels: n as u32,
+            channels,
+            cell_sizes,
         };
         GridLayout::new(&cfg, small_box()).unwrap()
     }
@@ -1662,6 +1762,11 @@ mod tests {
         let mut rng = crate::rng::SplitMix::new(21);
         for (layout, seed) in [
             (small(GridKind::Factorized), 1),
+            (levels(5, 2), 5),
+            (levels(8, 2), 6),
+            (levels(3, 4), 7),
+            (levels(2, 7), 8),
+            (levels(3, 7), 9),
             (one_level(GridKind::Factorized, 7), 2),
             (one_level(GridKind::Factorized, 16), 3),
             (one_level(GridKind::Factorized, 32), 4),

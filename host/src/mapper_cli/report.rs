@@ -199,11 +199,12 @@ pub(super) fn write_csv_row(
     )
 }
 
-/// "init" or "map": the kind of an iteration in progress lines.
+/// "init", "map" or "refine": the kind of an iteration in progress lines.
 pub(super) fn kind_label(kind: UpdateKind) -> &'static str {
     match kind {
         UpdateKind::Init => "init",
         UpdateKind::Online => "map",
+        UpdateKind::Refine => "refine",
     }
 }
 
