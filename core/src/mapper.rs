@@ -202,6 +202,9 @@ pub struct MapperConfig {
     pub refine_window: u32,
     /// Iterations per window of the final refinement (>= 1 when `refine_iters` > 0).
     pub refine_block: u32,
+    /// Learning-rate factor at the end of the final refinement, reached linearly from 1 over
+    /// its blocks (1 = constant; in (0, 1]); the rates are restored afterwards.
+    pub refine_lr_end: f32,
 }
 
 impl MapperConfig {
@@ -246,6 +249,7 @@ impl MapperConfig {
             refine_iters: 0,
             refine_window: 8,
             refine_block: 10,
+            refine_lr_end: 1.0,
         }
     }
 
@@ -316,6 +320,11 @@ impl MapperConfig {
             if self.refine_window < 2 || self.refine_block == 0 {
                 return Err(Error::InvalidConfig(
                     "mapper: refine_window must be >= 2 and refine_block >= 1 when refine_iters > 0",
+                ));
+            }
+            if !(self.refine_lr_end > 0.0 && self.refine_lr_end <= 1.0) {
+                return Err(Error::InvalidConfig(
+                    "mapper: refine_lr_end must be in (0, 1]",
                 ));
             }
             cap(
@@ -811,10 +820,45 @@ impl<'a, B: Backend> Mapper<'a, B> {
             return Ok(None);
         }
         let n = self.st.keyframes.len() + self.st.local.len();
-        let w = (self.cfg.refine_window as usize).min(n);
         let (mut first, mut last) = (None, None);
+        let base = Group::ALL.map(|g| self.backend.adam_lr(g));
+        let result = self.refine_blocks(iters, n, base, observe, &mut first, &mut last);
+        if self.cfg.refine_lr_end != 1.0 {
+            for g in Group::ALL {
+                self.backend
+                    .set_adam_lr(g, base[g as usize])
+                    .map_err(MapperError::Backend)?;
+            }
+        }
+        result?;
+        let (Some(first), Some(last)) = (first, last) else {
+            return Ok(None);
+        };
+        Ok(Some(self.report(UpdateKind::Refine, iters, first, last, 0)))
+    }
+
+    /// The blocks of [`Self::refine`] over `n` held frames, the learning rates `base` scaled.
+    fn refine_blocks<F: FnMut(&IterInfo)>(
+        &mut self,
+        iters: u32,
+        n: usize,
+        base: [f32; crate::field::model::NUM_GROUPS],
+        observe: &mut F,
+        first: &mut Option<IterInfo>,
+        last: &mut Option<IterInfo>,
+    ) -> Result<(), MapperError<B::Error>> {
+        let w = (self.cfg.refine_window as usize).min(n);
+        let end = self.cfg.refine_lr_end;
         let mut done = 0;
         while done < iters {
+            if end != 1.0 {
+                let f = 1.0 + (end - 1.0) * (done as f32 / iters as f32);
+                for g in Group::ALL {
+                    self.backend
+                        .set_adam_lr(g, base[g as usize] * f)
+                        .map_err(MapperError::Backend)?;
+                }
+            }
             let anchor = self.rng.below(n as u32) as usize;
             let start = anchor.saturating_sub(w / 2).min(n - w);
             self.clear_window();
@@ -829,13 +873,10 @@ impl<'a, B: Backend> Mapper<'a, B> {
             let block = self.cfg.refine_block.min(iters - done);
             let (f, l) = self.run_iters(UpdateKind::Refine, block, observe)?;
             first.get_or_insert(f);
-            last = Some(l);
+            *last = Some(l);
             done += block;
         }
-        let (Some(first), Some(last)) = (first, last) else {
-            return Ok(None);
-        };
-        Ok(Some(self.report(UpdateKind::Refine, iters, first, last, 0)))
+        Ok(())
     }
 
     fn initialise<F: FnMut(&IterInfo)>(
@@ -1416,6 +1457,8 @@ mod tests {
         pixels: Vec<PixelSample>,
         lambda_color: f32,
         color_to_geometry: bool,
+        /// The first group's learning rate at the step.
+        lr: f32,
     }
 
     /// A backend that renders every ray at depth 2 m with full opacity and records the
@@ -1515,6 +1558,7 @@ mod tests {
                 pixels: batch.pixels.to_vec(),
                 lambda_color: batch.loss.lambda_color,
                 color_to_geometry: batch.loss.color_to_geometry,
+                lr: self.lr[0],
             });
             for (r, p) in results.iter_mut().zip(batch.pixels) {
                 let f = p.frame;
@@ -1751,6 +1795,27 @@ mod tests {
             starts.iter().any(|s| *s != starts[0]),
             "random windows {starts:?}"
         );
+        assert!(calls.iter().all(|c| c.lr == 0.01), "constant rates");
+        // rates falling linearly per block to refine_lr_end, restored afterwards
+        let mut c = cfg();
+        (c.refine_iters, c.refine_window, c.refine_block) = (40, 4, 10);
+        c.refine_lr_end = 0.2;
+        let (mut px, mut res) = buffers();
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 30);
+        let before = m.backend().calls.len();
+        m.refine(&mut |_| {}).unwrap();
+        let lrs: Vec<f32> = m.backend().calls[before..]
+            .iter()
+            .step_by(10)
+            .map(|c| c.lr)
+            .collect();
+        let want = [1.0f32, 0.8, 0.6, 0.4].map(|f| 0.01 * f);
+        assert_eq!(lrs.len(), 4);
+        for (a, b) in lrs.iter().zip(want) {
+            assert!((a - b).abs() < 1e-8, "{lrs:?}");
+        }
+        assert_eq!(m.backend().adam_lr(Group::GeometryGrid), 0.01);
         // off: nothing
         let mut c = cfg();
         c.refine_iters = 0;
@@ -1763,6 +1828,11 @@ mod tests {
             let mut c = cfg();
             (c.refine_iters, c.refine_window, c.refine_block) = (5, w, b);
             assert!(refused(c), "window {w}, block {b}");
+        }
+        for end in [0.0, 1.5, f32::NAN] {
+            let mut c = cfg();
+            (c.refine_iters, c.refine_lr_end) = (5, end);
+            assert!(refused(c), "lr end {end}");
         }
     }
 

@@ -82,6 +82,7 @@ pub fn tiny_map_config() -> crate::config::Config {
     c.mapper.iters = 3;
     c.mapper.pixels = 128;
     c.mapper.max_keyframes = 8;
+    c.mapper.refine_iters = 0;
     c.eval.mesh_resolution = 0.15;
     c.eval.mesh_samples = 2000;
     c

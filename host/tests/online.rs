@@ -22,6 +22,7 @@ fn config() -> Config {
     c.mapper.iters = 3;
     c.mapper.pixels = 128;
     c.mapper.max_keyframes = 8;
+    c.mapper.refine_iters = 0;
     c.model.geometry.cell_sizes = vec![0.32, 0.16];
     c.model.appearance.cell_sizes = vec![0.24, 0.08];
     c.scene.default_horizontal = 6.0;

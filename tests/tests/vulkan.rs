@@ -177,6 +177,9 @@ fn map_command_on_vulkan_equals_cpu() {
     cfg.mapper.window_keyframes = 2;
     cfg.mapper.iters = 2;
     cfg.mapper.pixels = 64;
+    // the final refinement too: 7 iterations in blocks of 3 over windows of 4 held frames
+    (cfg.mapper.refine_iters, cfg.mapper.refine_block) = (7, 3);
+    cfg.mapper.refine_window = 4;
     cfg.eval.mesh_resolution = 0.3;
     cfg.eval.mesh_samples = 500;
     let run = |backend: &str| {
@@ -199,6 +202,7 @@ fn map_command_on_vulkan_equals_cpu() {
     assert!(sg.backend.starts_with("vulkan"), "{}", sg.backend);
     // init at frame 5, online at 10 and 15, the final update with frame 16
     assert_eq!(sc.updates, 4);
+    assert_eq!(sc.iterations, 12 + 3 * 2 + 7);
     assert_eq!((sc.updates, sc.iterations), (sg.updates, sg.iterations));
     assert_eq!(rc, rg, "metrics.csv differs");
     for g in Group::ALL {

@@ -964,6 +964,12 @@ pub fn grid_backward_rows<S: GradSink>(
         return;
     }
     let (xn, _) = normalize_with_mask(&layout.aabb, p);
+    if nc < NARROW_CHANNELS && nl * nc <= LANES {
+        if !narrow_backward(layout, params, xn, d_feat, sink) {
+            grid_backward(layout, params, p, d_feat, sink);
+        }
+        return;
+    }
     // Per channel: g * (the other factor) of every term: lines x, y, z; planes xy, xz, yz
     // (entries [..nc] are rewritten at every level).
     let mut gl = [[0.0f32; crate::field::mlp::MAX_WIDTH]; 6];
@@ -998,6 +1004,54 @@ pub fn grid_backward_rows<S: GradSink>(
         plane_rows_backward(sink, k.yz, &gl[5], nc, fy, fz);
         l += 1;
     }
+}
+
+/// [`grid_backward_rows`] of a narrow grid: the factors of every (level, channel) in lanes
+/// (the operations of [`grid_backward_rows`]' channel loop), then the same row calls in the
+/// same order. False (before any call) for a corrupted layout.
+#[inline(always)]
+fn narrow_backward<S: GradSink>(
+    layout: &GridLayout,
+    params: &[f32],
+    xn: [f32; 3],
+    d_feat: &[f32; MAX_GRID_FEATURES],
+    sink: &mut S,
+) -> bool {
+    let (nl, nc) = kernel_dims(layout);
+    let Some(g) = NarrowLanes::gather(layout, params, xn) else {
+        return false;
+    };
+    let mut lanes = [[0.0f32; LANES]; 6];
+    for i in 0..LANES {
+        let ([vx, vy, vz], [mxy, mxz, myz]) = g.interp(i);
+        let d = if i < nl * nc { d_feat[i] } else { 0.0 };
+        lanes[0][i] = d * myz;
+        lanes[1][i] = d * mxz;
+        lanes[2][i] = d * mxy;
+        lanes[3][i] = d * vz;
+        lanes[4][i] = d * vy;
+        lanes[5][i] = d * vx;
+    }
+    let mut gl = [[0.0f32; crate::field::mlp::MAX_WIDTH]; 6];
+    for l in 0..nl {
+        let lv = &layout.level[l];
+        let cell = locate(xn, lv.res);
+        let k = vm_corners(lv, nc, &cell);
+        for (row, lane) in gl.iter_mut().zip(&lanes) {
+            row[..nc].copy_from_slice(&lane[l * nc..(l + 1) * nc]);
+        }
+        let [fx, fy, fz] = cell.f;
+        sink.add_scaled(k.x[0], 1.0 - fx, &gl[0], nc);
+        sink.add_scaled(k.x[1], fx, &gl[0], nc);
+        sink.add_scaled(k.y[0], 1.0 - fy, &gl[1], nc);
+        sink.add_scaled(k.y[1], fy, &gl[1], nc);
+        sink.add_scaled(k.z[0], 1.0 - fz, &gl[2], nc);
+        sink.add_scaled(k.z[1], fz, &gl[2], nc);
+        plane_rows_backward(sink, k.xy, &gl[3], nc, fx, fy);
+        plane_rows_backward(sink, k.xz, &gl[4], nc, fx, fz);
+        plane_rows_backward(sink, k.yz, &gl[5], nc, fy, fz);
+    }
+    true
 }
 
 /// [`plane_backward`] for all channels of a corner set at once.
