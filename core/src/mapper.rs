@@ -205,6 +205,9 @@ pub struct MapperConfig {
     /// Learning-rate factor at the end of the final refinement, reached linearly from 1 over
     /// its blocks (1 = constant; in (0, 1]); the rates are restored afterwards.
     pub refine_lr_end: f32,
+    /// Whether the final refinement moves the geometry (grid, decoder, beta) too (true);
+    /// false refines the appearance only (the geometry groups' rates are 0 during it).
+    pub refine_geometry: bool,
 }
 
 impl MapperConfig {
@@ -250,6 +253,7 @@ impl MapperConfig {
             refine_window: 8,
             refine_block: 10,
             refine_lr_end: 1.0,
+            refine_geometry: true,
         }
     }
 
@@ -823,7 +827,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
         let (mut first, mut last) = (None, None);
         let base = Group::ALL.map(|g| self.backend.adam_lr(g));
         let result = self.refine_blocks(iters, n, base, observe, &mut first, &mut last);
-        if self.cfg.refine_lr_end != 1.0 {
+        if self.cfg.refine_lr_end != 1.0 || !self.cfg.refine_geometry {
             for g in Group::ALL {
                 self.backend
                     .set_adam_lr(g, base[g as usize])
@@ -849,11 +853,18 @@ impl<'a, B: Backend> Mapper<'a, B> {
     ) -> Result<(), MapperError<B::Error>> {
         let w = (self.cfg.refine_window as usize).min(n);
         let end = self.cfg.refine_lr_end;
+        let appearance_only = !self.cfg.refine_geometry;
         let mut done = 0;
         while done < iters {
-            if end != 1.0 {
+            if end != 1.0 || appearance_only {
                 let f = 1.0 + (end - 1.0) * (done as f32 / iters as f32);
                 for g in Group::ALL {
+                    let appearance = matches!(g, Group::AppearanceGrid | Group::AppearanceMlp);
+                    let f = if appearance_only && !appearance {
+                        0.0
+                    } else {
+                        f
+                    };
                     self.backend
                         .set_adam_lr(g, base[g as usize] * f)
                         .map_err(MapperError::Backend)?;
@@ -1815,6 +1826,19 @@ mod tests {
         for (a, b) in lrs.iter().zip(want) {
             assert!((a - b).abs() < 1e-8, "{lrs:?}");
         }
+        assert_eq!(m.backend().adam_lr(Group::GeometryGrid), 0.01);
+        // appearance only: the geometry groups' rates are 0 during it, restored afterwards
+        let mut c = cfg();
+        (c.refine_iters, c.refine_window, c.refine_block) = (20, 4, 10);
+        c.refine_geometry = false;
+        let (mut px, mut res) = buffers();
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 30);
+        let before = m.backend().calls.len();
+        m.refine(&mut |_| {}).unwrap();
+        // the mock records the geometry grid's rate (group 0)
+        assert!(m.backend().calls[before..].iter().all(|c| c.lr == 0.0));
+        assert_eq!(m.backend().calls.len(), before + 20);
         assert_eq!(m.backend().adam_lr(Group::GeometryGrid), 0.01);
         // off: nothing
         let mut c = cfg();

@@ -182,6 +182,7 @@ struct MapperDef {
     refine_window: u32,
     refine_block: u32,
     refine_lr_end: f32,
+    refine_geometry: bool,
     max_keyframes: u32,
     #[serde(with = "OverflowDef")]
     keyframe_overflow: KeyframeOverflow,
