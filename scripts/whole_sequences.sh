@@ -15,7 +15,7 @@
 # Usage: scripts/whole_sequences.sh [--only icl|7scenes|house|demo] [--table-only]
 # Environment: HIMAP (binary, default target/release/himap), DATA (../shared/data), OUT
 # (out/whole), THREADS (2), SEED (house seed, 0), EXTRA (more `himap map` arguments, e.g.
-# "--config my.toml").
+# "--config my.toml", laid over 7-Scenes' own configuration too).
 set -euo pipefail
 
 root=$(cd "$(dirname "$0")/.." && pwd)

@@ -57,9 +57,11 @@ struct MapArgs {
     dataset: PathBuf,
     #[arg(long)]
     out: PathBuf,
-    /// Configuration file (TOML; missing fields take the preset's values).
-    #[arg(long, conflicts_with = "preset")]
-    config: Option<PathBuf>,
+    /// Configuration file (TOML; missing fields take the preset's values). May be given
+    /// several times: the files are laid over the preset in order, a later file's values win
+    /// (e.g. a dataset's scene box and camera, then an experiment's settings).
+    #[arg(long)]
+    config: Vec<PathBuf>,
     /// Preset: small (2-core CPU), paper, or demo (`himap demo`'s: small with the 20-iteration schedule without early termination).
     #[arg(long, default_value = "small")]
     preset: String,
@@ -441,11 +443,10 @@ fn map(args: MapArgs) -> anyhow::Result<()> {
         rerun_save,
         rerun_mesh_every,
     } = args;
-    let base = himap::config::Config::preset(&preset)?;
-    let cfg = match &config {
-        Some(p) => himap::config::Config::from_file_over(p, &base)?,
-        None => base,
-    };
+    let mut cfg = himap::config::Config::preset(&preset)?;
+    for p in &config {
+        cfg = himap::config::Config::from_file_over(p, &cfg)?;
+    }
     if print_config {
         print!("{}", cfg.to_toml());
         return Ok(());
