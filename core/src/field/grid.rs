@@ -984,24 +984,12 @@ pub fn grid_backward_rows<S: GradSink>(
         };
         let d = &d_feat[l * nc..(l + 1) * nc];
         for (c, &g) in d.iter().enumerate() {
-            let ([vx, vy, vz], [mxy, mxz, myz]) = vm_interp_rows(&r, c, cell.f);
-            gl[0][c] = g * myz;
-            gl[1][c] = g * mxz;
-            gl[2][c] = g * mxy;
-            gl[3][c] = g * vz;
-            gl[4][c] = g * vy;
-            gl[5][c] = g * vx;
+            let f = term_factors(g, vm_interp_rows(&r, c, cell.f));
+            for (row, f) in gl.iter_mut().zip(f) {
+                row[c] = f;
+            }
         }
-        let [fx, fy, fz] = cell.f;
-        sink.add_scaled(k.x[0], 1.0 - fx, &gl[0], nc);
-        sink.add_scaled(k.x[1], fx, &gl[0], nc);
-        sink.add_scaled(k.y[0], 1.0 - fy, &gl[1], nc);
-        sink.add_scaled(k.y[1], fy, &gl[1], nc);
-        sink.add_scaled(k.z[0], 1.0 - fz, &gl[2], nc);
-        sink.add_scaled(k.z[1], fz, &gl[2], nc);
-        plane_rows_backward(sink, k.xy, &gl[3], nc, fx, fy);
-        plane_rows_backward(sink, k.xz, &gl[4], nc, fx, fz);
-        plane_rows_backward(sink, k.yz, &gl[5], nc, fy, fz);
+        level_rows_backward(sink, &k, cell.f, &gl, nc);
         l += 1;
     }
 }
@@ -1023,14 +1011,10 @@ fn narrow_backward<S: GradSink>(
     };
     let mut lanes = [[0.0f32; LANES]; 6];
     for i in 0..LANES {
-        let ([vx, vy, vz], [mxy, mxz, myz]) = g.interp(i);
         let d = if i < nl * nc { d_feat[i] } else { 0.0 };
-        lanes[0][i] = d * myz;
-        lanes[1][i] = d * mxz;
-        lanes[2][i] = d * mxy;
-        lanes[3][i] = d * vz;
-        lanes[4][i] = d * vy;
-        lanes[5][i] = d * vx;
+        for (lane, f) in lanes.iter_mut().zip(term_factors(d, g.interp(i))) {
+            lane[i] = f;
+        }
     }
     let mut gl = [[0.0f32; crate::field::mlp::MAX_WIDTH]; 6];
     for l in 0..nl {
@@ -1040,18 +1024,47 @@ fn narrow_backward<S: GradSink>(
         for (row, lane) in gl.iter_mut().zip(&lanes) {
             row[..nc].copy_from_slice(&lane[l * nc..(l + 1) * nc]);
         }
-        let [fx, fy, fz] = cell.f;
-        sink.add_scaled(k.x[0], 1.0 - fx, &gl[0], nc);
-        sink.add_scaled(k.x[1], fx, &gl[0], nc);
-        sink.add_scaled(k.y[0], 1.0 - fy, &gl[1], nc);
-        sink.add_scaled(k.y[1], fy, &gl[1], nc);
-        sink.add_scaled(k.z[0], 1.0 - fz, &gl[2], nc);
-        sink.add_scaled(k.z[1], fz, &gl[2], nc);
-        plane_rows_backward(sink, k.xy, &gl[3], nc, fx, fy);
-        plane_rows_backward(sink, k.xz, &gl[4], nc, fx, fz);
-        plane_rows_backward(sink, k.yz, &gl[5], nc, fy, fz);
+        level_rows_backward(sink, &k, cell.f, &gl, nc);
     }
     true
+}
+
+/// The cotangent `g` of a feature times the other factor of each of its terms, in the
+/// order of [`level_rows_backward`]'s rows: lines x, y, z (times the planes yz, xz, xy),
+/// then planes xy, xz, yz (times the lines z, y, x).
+#[inline(always)]
+fn term_factors(g: f32, (line, plane): ([f32; 3], [f32; 3])) -> [f32; 6] {
+    [
+        g * plane[2],
+        g * plane[1],
+        g * plane[0],
+        g * line[2],
+        g * line[1],
+        g * line[0],
+    ]
+}
+
+/// The 18 row contributions of one factorized level at cell fractions `f`: each line's two
+/// ends and each plane's four corners, channels `..nc` of the factor rows `gl`
+/// ([`term_factors`]' order).
+#[inline(always)]
+fn level_rows_backward<S: GradSink>(
+    sink: &mut S,
+    k: &VmCorners,
+    f: [f32; 3],
+    gl: &[[f32; crate::field::mlp::MAX_WIDTH]; 6],
+    nc: usize,
+) {
+    let [fx, fy, fz] = f;
+    sink.add_scaled(k.x[0], 1.0 - fx, &gl[0], nc);
+    sink.add_scaled(k.x[1], fx, &gl[0], nc);
+    sink.add_scaled(k.y[0], 1.0 - fy, &gl[1], nc);
+    sink.add_scaled(k.y[1], fy, &gl[1], nc);
+    sink.add_scaled(k.z[0], 1.0 - fz, &gl[2], nc);
+    sink.add_scaled(k.z[1], fz, &gl[2], nc);
+    plane_rows_backward(sink, k.xy, &gl[3], nc, fx, fy);
+    plane_rows_backward(sink, k.xz, &gl[4], nc, fx, fz);
+    plane_rows_backward(sink, k.yz, &gl[5], nc, fy, fz);
 }
 
 /// [`plane_backward`] for all channels of a corner set at once.
