@@ -789,19 +789,27 @@ fn vm_rows<'p>(params: &'p [f32], k: &VmCorners, nc: usize) -> Option<[&'p [f32]
     ])
 }
 
+impl VmValues {
+    /// The values from the 18 rows of [`vm_rows`]' order (planes xy, xz, yz, then lines x,
+    /// y, z); `at(j)` reads row `j`. Host-side.
+    #[inline(always)]
+    fn from_rows(at: impl Fn(usize) -> f32) -> Self {
+        VmValues {
+            xy: [at(0), at(1), at(2), at(3)],
+            xz: [at(4), at(5), at(6), at(7)],
+            yz: [at(8), at(9), at(10), at(11)],
+            x: [at(12), at(13)],
+            y: [at(14), at(15)],
+            z: [at(16), at(17)],
+        }
+    }
+}
+
 /// Lines `[vx, vy, vz]` and planes `[mxy, mxz, myz]` of channel `c` from [`vm_rows`], the
 /// operations of [`vm_interp`].
 #[inline(always)]
 fn vm_interp_rows(r: &[&[f32]; 18], c: usize, f: [f32; 3]) -> ([f32; 3], [f32; 3]) {
-    let v = VmValues {
-        xy: [r[0][c], r[1][c], r[2][c], r[3][c]],
-        xz: [r[4][c], r[5][c], r[6][c], r[7][c]],
-        yz: [r[8][c], r[9][c], r[10][c], r[11][c]],
-        x: [r[12][c], r[13][c]],
-        y: [r[14][c], r[15][c]],
-        z: [r[16][c], r[17][c]],
-    };
-    vm_interp(&v, f)
+    vm_interp(&VmValues::from_rows(|j| r[j][c]), f)
 }
 
 /// [`grid_forward`] over a parameter slice with a level's channels side by side (what a CPU
@@ -886,15 +894,7 @@ impl NarrowLanes {
     /// [`vm_interp`] of lane `i`: the same operations.
     #[inline(always)]
     fn interp(&self, i: usize) -> ([f32; 3], [f32; 3]) {
-        let v = &self.v;
-        let vals = VmValues {
-            xy: [v[0][i], v[1][i], v[2][i], v[3][i]],
-            xz: [v[4][i], v[5][i], v[6][i], v[7][i]],
-            yz: [v[8][i], v[9][i], v[10][i], v[11][i]],
-            x: [v[12][i], v[13][i]],
-            y: [v[14][i], v[15][i]],
-            z: [v[16][i], v[17][i]],
-        };
+        let vals = VmValues::from_rows(|j| self.v[j][i]);
         vm_interp(&vals, [self.f[0][i], self.f[1][i], self.f[2][i]])
     }
 }
