@@ -1345,23 +1345,28 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 self.make_triplets();
             }
             let init = kind == UpdateKind::Init;
+            // An appearance-only refinement leaves the geometry's rates at 0: the terms that
+            // act only on the geometry (warping, depth priors, planarity) are not computed,
+            // which changes no parameter and makes its iterations cheaper.
+            let geometry = kind != UpdateKind::Refine || self.cfg.refine_geometry;
+            let on = |w: f32| if geometry { w } else { 0.0 };
             let loss = MappingLoss {
                 lambda_color: if init {
                     self.cfg.lambda_color_init
                 } else {
                     self.cfg.lambda_color
                 },
-                lambda_warp: self.cfg.lambda_warp,
+                lambda_warp: on(self.cfg.lambda_warp),
                 color_scale: inv,
                 warp_scale: inv,
                 color_to_geometry: init && it < self.cfg.init_color_iters,
                 seed: hash_u32(self.st.total_iters ^ (self.cfg.seed as u32)),
                 warp: self.cfg.warp,
-                lambda_depth_prior: if init && it < self.cfg.depth_prior_iters {
+                lambda_depth_prior: on(if init && it < self.cfg.depth_prior_iters {
                     self.cfg.lambda_depth_prior
                 } else {
                     self.cfg.lambda_depth_prior_online
-                },
+                }),
                 depth_prior: self.cfg.depth_prior,
                 depth_prior_near: if init && it < self.cfg.depth_prior_iters {
                     0.0
@@ -1369,7 +1374,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
                     self.cfg.depth_prior_near
                 },
                 planar: PlanarConfig {
-                    weight: self.cfg.lambda_planar,
+                    weight: on(self.cfg.lambda_planar),
                     edge: self.cfg.planar_edge,
                     beta: self.cfg.planar_beta,
                 },

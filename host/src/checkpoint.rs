@@ -204,6 +204,21 @@ pub fn path_of(path: &Path) -> PathBuf {
     }
 }
 
+/// Whether a checkpoint's configuration (TOML) and a resuming run's give the same mapping:
+/// equal but for the final refinement's settings (`mapper.refine_*`), which act only after
+/// the last frame, so that a run checkpointed at its last frame can be refined again with
+/// other settings.
+fn same_run_config(written: &str, resuming: &str) -> bool {
+    fn strip(text: &str) -> Option<toml::Table> {
+        let mut t: toml::Table = toml::from_str(text).ok()?;
+        if let Some(toml::Value::Table(m)) = t.get_mut("mapper") {
+            m.retain(|k, _| !k.starts_with("refine_"));
+        }
+        Some(t)
+    }
+    written == resuming || matches!((strip(written), strip(resuming)), (Some(a), Some(b)) if a == b)
+}
+
 /// Reads a checkpoint and checks it against the run that resumes it: the same effective
 /// configuration and the same dataset (folder, frame count, image size, and the poses of
 /// the frames it had pushed, from `poses_of(n)`).
@@ -223,10 +238,11 @@ pub fn load(
         .with_context(|| format!("{}: a map, not a checkpoint (no {META})", file.display()))?;
     let run: RunState = serde_json::from_str(json)
         .with_context(|| format!("{}: unreadable checkpoint state", file.display()))?;
-    if run.config != config.to_toml() {
+    if !same_run_config(&run.config, &config.to_toml()) {
         bail!(
             "{} was written with another configuration; resume with the same preset and \
-             --config as the interrupted run (`himap map --print-config` shows the effective one)",
+             --config as the interrupted run (only the final refinement's `mapper.refine_*` \
+             settings may differ; `himap map --print-config` shows the effective one)",
             file.display()
         );
     }

@@ -519,3 +519,50 @@ fn a_resumed_run_equals_the_uninterrupted_one() {
     let e = format!("{:#}", run_map(&o).unwrap_err());
     assert!(e.contains("another dataset"), "{e}");
 }
+
+/// A run checkpointed at its last frame resumes into the final update and the refinement:
+/// the same map, bit for bit, as the uninterrupted run. The refinement's settings
+/// (`mapper.refine_*`) may differ on resume (they act after the last frame), any other
+/// setting may not.
+#[test]
+fn a_checkpoint_at_the_last_frame_resumes_into_the_refinement() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_room(dir.path());
+    let mut cfg = tiny_config();
+    cfg.eval.final_every = 0;
+    cfg.mapper.refine_iters = 6;
+    cfg.mapper.refine_block = 3;
+    cfg.mapper.refine_window = 4;
+    let whole = dir.path().join("whole");
+    let mut o = options(data.clone(), whole.clone(), cfg.clone());
+    o.checkpoint_every = 20;
+    let w = run_map(&o).unwrap();
+    assert!(whole.join("checkpoint.safetensors").is_file());
+
+    let resumed = dir.path().join("resumed");
+    let mut o = options(data.clone(), resumed.clone(), cfg.clone());
+    o.resume = Some(whole.clone());
+    let r = run_map(&o).unwrap();
+    assert_eq!((r.updates, r.iterations), (w.updates, w.iterations));
+    let (_, a) = load_map(&whole.join("map.safetensors")).unwrap();
+    let (_, b) = load_map(&resumed.join("map.safetensors")).unwrap();
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    for g in 0..himap_core::field::model::NUM_GROUPS {
+        assert_eq!(bits(&a.params[g]), bits(&b.params[g]), "group {g}");
+    }
+
+    // another refinement: accepted, and it is what runs
+    let mut other = cfg.clone();
+    other.mapper.refine_iters = 3;
+    let mut o = options(data.clone(), dir.path().join("other"), other);
+    o.resume = Some(whole.clone());
+    let r = run_map(&o).unwrap();
+    assert_eq!(r.iterations, w.iterations - 3);
+    // any other setting: refused
+    let mut other = cfg.clone();
+    other.mapper.iters += 1;
+    let mut o = options(data, dir.path().join("x"), other);
+    o.resume = Some(whole);
+    let e = format!("{:#}", run_map(&o).unwrap_err());
+    assert!(e.contains("another configuration"), "{e}");
+}

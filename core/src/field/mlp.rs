@@ -347,11 +347,20 @@ pub fn mlp_forward_transposed(
         let b_off = layout.bias_offsets[k] as usize;
         let mut acc = [0.0f32; MAX_WIDTH];
         let x = &scratch.act[k];
+        // Fixed-size accumulators the compiler keeps in registers: the decoders' width
+        // (paper and presets) and their output layers (1 SDF, 3 colours, ...). The generic
+        // loop keeps `acc` in memory, where each add waits for the previous one's store.
         if fan_out == 32 {
-            // The decoders' width (paper and presets): a fixed-size accumulator the compiler
-            // keeps in registers.
-            let a32 = layer_transposed::<32>(wt, w_off, b_off, &x[..fan_in]);
-            acc[..32].copy_from_slice(&a32);
+            let a = layer_transposed::<32>(wt, w_off, b_off, &x[..fan_in]);
+            acc[..32].copy_from_slice(&a);
+        } else if fan_out == 1 {
+            acc[0] = layer_transposed::<1>(wt, w_off, b_off, &x[..fan_in])[0];
+        } else if fan_out == 3 {
+            let a = layer_transposed::<3>(wt, w_off, b_off, &x[..fan_in]);
+            acc[..3].copy_from_slice(&a);
+        } else if fan_out == 4 {
+            let a = layer_transposed::<4>(wt, w_off, b_off, &x[..fan_in]);
+            acc[..4].copy_from_slice(&a);
         } else {
             acc[..fan_out].copy_from_slice(&wt[b_off..b_off + fan_out]);
             for (i, &xi) in x[..fan_in].iter().enumerate() {
@@ -470,10 +479,19 @@ pub fn mlp_backward<P: ParamRead + ?Sized, S: GradSink>(
         fan_out = fan_in;
         kk += 1;
     }
-    let mut i = 0;
-    while i < MAX_WIDTH {
-        d_input[i] = if i < n_in { delta[i] } else { 0.0 };
-        i += 1;
+    // Bulk copies on the CPU, the element loop in the shaders: the same values.
+    #[cfg(not(target_arch = "spirv"))]
+    {
+        d_input[..n_in].copy_from_slice(&delta[..n_in]);
+        d_input[n_in..].fill(0.0);
+    }
+    #[cfg(target_arch = "spirv")]
+    {
+        let mut i = 0;
+        while i < MAX_WIDTH {
+            d_input[i] = if i < n_in { delta[i] } else { 0.0 };
+            i += 1;
+        }
     }
 }
 

@@ -580,10 +580,21 @@ fn geometry_input(
     mlp_in: &mut [f32; MAX_WIDTH],
 ) {
     let n = layout.geometry_grid.feature_dim();
-    let mut i = 0;
-    while i < MAX_WIDTH {
-        mlp_in[i] = if i < n { feat[i] } else { 0.0 };
-        i += 1;
+    // The CPU copies and clears the rows in bulk (a 128-step scalar loop per sample was 5 %
+    // of a training step); the shaders keep the element loop. The same values either way.
+    #[cfg(not(target_arch = "spirv"))]
+    {
+        let n = n.min(MAX_WIDTH);
+        mlp_in[..n].copy_from_slice(&feat[..n]);
+        mlp_in[n..].fill(0.0);
+    }
+    #[cfg(target_arch = "spirv")]
+    {
+        let mut i = 0;
+        while i < MAX_WIDTH {
+            mlp_in[i] = if i < n { feat[i] } else { 0.0 };
+            i += 1;
+        }
     }
 }
 
@@ -596,16 +607,27 @@ fn appearance_input(
 ) -> usize {
     let n = layout.appearance_grid.feature_dim();
     let off = if layout.config.dual_path { 3 } else { 0 };
-    let mut i = 0;
-    while i < MAX_WIDTH {
-        mlp_in[i] = if i < off {
-            pn[i]
-        } else if i < off + n {
-            feat[i - off]
-        } else {
-            0.0
-        };
-        i += 1;
+    // Bulk copies on the CPU, the element loop in the shaders (as in `geometry_input`).
+    #[cfg(not(target_arch = "spirv"))]
+    {
+        let n = n.min(MAX_WIDTH - off);
+        mlp_in[..off].copy_from_slice(&pn[..off]);
+        mlp_in[off..off + n].copy_from_slice(&feat[..n]);
+        mlp_in[off + n..].fill(0.0);
+    }
+    #[cfg(target_arch = "spirv")]
+    {
+        let mut i = 0;
+        while i < MAX_WIDTH {
+            mlp_in[i] = if i < off {
+                pn[i]
+            } else if i < off + n {
+                feat[i - off]
+            } else {
+                0.0
+            };
+            i += 1;
+        }
     }
     off
 }

@@ -122,6 +122,11 @@ where
         mid_run_error(e, at, &run.backend_name, last_checkpoint, opts)
     };
     let pushed = opts.stop_after.map_or(n, |s| s.min(n));
+    if start == n && n > 0 {
+        // A checkpoint written at the last frame: the final update and the refinement (whose
+        // settings may differ from the checkpointed run's) still run.
+        last_frame = Some(ds.frame(n - 1)?);
+    }
     for i in start..pushed {
         let frame = ds.frame(i)?;
         poses.push(frame.pose);
