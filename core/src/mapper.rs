@@ -171,6 +171,8 @@ pub struct MapperConfig {
     /// weight per pixel, averaged like the colour term (0 = off), edge sensitivity and
     /// smooth-L1 threshold. When on, the sampled pixels come in triplets `b - s`, `b`,
     /// `b + s` along a row or a column of one frame, `s` drawn in `1..=planar_spacing` px.
+    /// A triplet pays it only where its centre has the warping term's `min_views` valid views
+    /// (plain surfaces the window sees, not space only the newest frames look into).
     pub lambda_planar: f32,
     /// Edge sensitivity of the planarity prior ([`PlanarConfig::edge`]).
     pub planar_edge: f32,

@@ -99,6 +99,10 @@ pub struct EvalOptions {
     pub seed: u64,
     /// Culling of the reconstruction (needs camera poses: a dataset directory as ground truth).
     pub culling: Culling,
+    /// Culling of a ground-truth mesh by the same frames (the "observed ground truth": the
+    /// surfaces the sequence's cameras see; needs a dataset directory with `gt_mesh.ply`).
+    /// A reconstruction of only the observed surfaces cannot complete what no frame saw.
+    pub gt_culling: Culling,
     /// Occlusion tolerance in metres (0.03, as GO-Surf / Neural-RGBD).
     pub occlusion_eps_m: f32,
     /// Use every k-th frame for culling (2, as the Hi-Map author's benchmark).
@@ -122,6 +126,7 @@ impl Default for EvalOptions {
             threshold_m: 0.05,
             seed: 0,
             culling: Culling::None,
+            gt_culling: Culling::None,
             occlusion_eps_m: 0.03,
             cull_stride: 2,
             gt_stride: 10,
@@ -512,6 +517,16 @@ impl fmt::Display for EvalReport {
                 ),
             }
         )?;
+        if self.options.gt_culling != Culling::None {
+            writeln!(
+                f,
+                "ground truth: gt_mesh.ply culled by the same frames ({}): only what they observe",
+                match self.options.gt_culling {
+                    Culling::Frustum => "frustum",
+                    _ => "frustum and occlusion",
+                }
+            )?;
+        }
         writeln!(
             f,
             "Accuracy {:.2} cm | Completion {:.2} cm | Completion ratio {:.2} % (< {} cm)",
@@ -569,9 +584,10 @@ fn cull_by_dataset(
     rec: Mesh,
     ds: &dyn crate::dataset::Dataset,
     gt: &Path,
+    culling: Culling,
     opts: &EvalOptions,
 ) -> anyhow::Result<Mesh> {
-    Ok(match opts.culling {
+    Ok(match culling {
         Culling::None => rec,
         Culling::Frustum => {
             let views = (0..ds.len())
@@ -594,6 +610,31 @@ fn cull_by_dataset(
     })
 }
 
+/// Splits every face with an edge longer than `max_edge` into 4 (midpoints), repeatedly.
+pub fn subdivide(m: &Mesh, max_edge: f32) -> Mesh {
+    let mut out = Mesh::default();
+    let mut stack: Vec<[[f32; 3]; 3]> = (0..m.faces.len()).map(|f| m.triangle(f)).collect();
+    let len = |a: [f32; 3], b: [f32; 3]| {
+        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    };
+    while let Some([a, b, c]) = stack.pop() {
+        if len(a, b).max(len(b, c)).max(len(c, a)) <= max_edge {
+            let base = out.vertices.len() as u32;
+            out.vertices.extend([a, b, c]);
+            out.faces.push([base, base + 1, base + 2]);
+            continue;
+        }
+        let mid = |p: [f32; 3], q: [f32; 3]| [0, 1, 2].map(|k| 0.5 * (p[k] + q[k]));
+        let (ab, bc, ca) = (mid(a, b), mid(b, c), mid(c, a));
+        stack.extend([[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]);
+    }
+    out
+}
+
+/// Longest edge (m) a ground-truth mesh's faces are split to before it is culled: faces are
+/// kept by their vertices, and a wall of two huge triangles has none in any view.
+const GT_CULL_EDGE_M: f32 = 0.1;
+
 /// Evaluates a mesh file against a ground truth and builds the report (the caller prints it
 /// with `Display`). `gt` is a PLY file (a mesh, or a point cloud when it has no faces) or a
 /// dataset directory ([`crate::dataset::open`]): its `gt_mesh.ply` when present and
@@ -612,7 +653,7 @@ pub fn eval_report(mesh: &Path, gt: &Path, opts: &EvalOptions) -> anyhow::Result
         let mesh_path = gt.join("gt_mesh.ply");
         let use_mesh = opts.prefer_gt_mesh && mesh_path.is_file();
         // The dataset itself is needed only for a depth ground truth or for culling.
-        let ds = if !use_mesh || opts.culling != Culling::None {
+        let ds = if !use_mesh || opts.culling != Culling::None || opts.gt_culling != Culling::None {
             Some(
                 crate::dataset::open_with(
                     gt,
@@ -625,8 +666,28 @@ pub fn eval_report(mesh: &Path, gt: &Path, opts: &EvalOptions) -> anyhow::Result
             None
         };
         let (truth, kind) = if use_mesh {
-            (GroundTruth::Mesh(Mesh::read_ply(&mesh_path)?), "mesh")
+            let m = Mesh::read_ply(&mesh_path)?;
+            match (opts.gt_culling, ds.as_ref()) {
+                (Culling::None, _) | (_, None) => (GroundTruth::Mesh(m), "mesh"),
+                (c, Some(ds)) => (
+                    GroundTruth::Mesh(cull_by_dataset(
+                        subdivide(&m, GT_CULL_EDGE_M),
+                        ds.as_ref(),
+                        gt,
+                        c,
+                        opts,
+                    )?),
+                    "observed mesh",
+                ),
+            }
         } else {
+            if opts.gt_culling != Culling::None {
+                bail!(
+                    "{}: culling the ground truth needs its gt_mesh.ply (a depth ground truth \
+                     is already what the frames observed)",
+                    gt.display()
+                );
+            }
             let ds = ds.as_ref().expect("opened above");
             (
                 GroundTruth::Points(depth_truth(ds.as_ref(), gt, opts)?),
@@ -634,12 +695,12 @@ pub fn eval_report(mesh: &Path, gt: &Path, opts: &EvalOptions) -> anyhow::Result
             )
         };
         let rec = match ds.as_ref() {
-            Some(ds) => cull_by_dataset(rec, ds.as_ref(), gt, opts)?,
+            Some(ds) => cull_by_dataset(rec, ds.as_ref(), gt, opts.culling, opts)?,
             None => rec,
         };
         (truth, kind, rec)
     } else {
-        if opts.culling != Culling::None {
+        if opts.culling != Culling::None || opts.gt_culling != Culling::None {
             bail!("culling needs camera poses: pass a dataset directory as the ground truth");
         }
         let m = Mesh::read_ply(gt)?;
@@ -1051,27 +1112,49 @@ mod tests {
         };
         let rf = run_eval_cli(&dense_path, &seq, None, &f).unwrap();
         assert!(rf.faces_evaluated >= rc.faces_evaluated && rf.faces_evaluated < rf.faces);
+
+        // The observed ground truth: with the dense mesh as the dataset's gt_mesh.ply, the
+        // reconstruction of exactly the observed surfaces misses the unobserved ones against
+        // the whole mesh, and is complete against the mesh culled by the same frames.
+        dense.write_ply(&gt_mesh).unwrap();
+        let whole = run_eval_cli(&dense_path, &seq, None, &c_mesh(&c)).unwrap();
+        assert_eq!(whole.gt_kind, "mesh");
+        let observed = EvalOptions {
+            gt_culling: Culling::FrustumOcclusion,
+            ..c_mesh(&c)
+        };
+        let ro = run_eval_cli(&dense_path, &seq, None, &observed).unwrap();
+        assert_eq!(ro.gt_kind, "observed mesh");
+        assert!(
+            format!("{ro}").contains("culled by the same frames"),
+            "{ro}"
+        );
+        assert!(ro.metrics.completion_ratio_pct > 99.0, "{ro}");
+        assert!(
+            whole.metrics.completion_ratio_pct < ro.metrics.completion_ratio_pct - 1.0
+                && whole.metrics.completion_cm > ro.metrics.completion_cm,
+            "{whole}\n{ro}"
+        );
+        // Only a mesh ground truth can be culled.
+        let e = run_eval_cli(
+            &dense_path,
+            &seq,
+            None,
+            &EvalOptions {
+                prefer_gt_mesh: false,
+                ..observed
+            },
+        )
+        .unwrap_err();
+        assert!(format!("{e:#}").contains("needs its gt_mesh.ply"), "{e:#}");
     }
 
-    /// Splits every face with an edge longer than `max_edge` into 4 (midpoints), repeatedly.
-    fn subdivide(m: &Mesh, max_edge: f32) -> Mesh {
-        let mut out = Mesh::default();
-        let mut stack: Vec<[[f32; 3]; 3]> = (0..m.faces.len()).map(|f| m.triangle(f)).collect();
-        let len = |a: [f32; 3], b: [f32; 3]| {
-            ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
-        };
-        while let Some([a, b, c]) = stack.pop() {
-            if len(a, b).max(len(b, c)).max(len(c, a)) <= max_edge {
-                let base = out.vertices.len() as u32;
-                out.vertices.extend([a, b, c]);
-                out.faces.push([base, base + 1, base + 2]);
-                continue;
-            }
-            let mid = |p: [f32; 3], q: [f32; 3]| [0, 1, 2].map(|k| 0.5 * (p[k] + q[k]));
-            let (ab, bc, ca) = (mid(a, b), mid(b, c), mid(c, a));
-            stack.extend([[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]);
+    /// `o` with the dataset's gt_mesh.ply as the ground truth.
+    fn c_mesh(o: &EvalOptions) -> EvalOptions {
+        EvalOptions {
+            prefer_gt_mesh: true,
+            ..o.clone()
         }
-        out
     }
 
     #[test]

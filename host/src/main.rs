@@ -223,6 +223,10 @@ struct EvalArgs {
     /// Culling of the reconstruction by the dataset's cameras: none, frustum, occlusion.
     #[arg(long, default_value = "none")]
     cull: String,
+    /// Culling of the ground-truth mesh by the same cameras (none, frustum, occlusion): the
+    /// "observed ground truth", what the sequence's frames see (a dataset with gt_mesh.ply).
+    #[arg(long, default_value = "none")]
+    gt_cull: String,
     /// A configuration whose [dataset] section says how to read the ground-truth dataset
     /// (its cameras; the one the map was made with).
     #[arg(long)]
@@ -664,15 +668,19 @@ fn eval(args: EvalArgs) -> anyhow::Result<()> {
         json,
         samples,
         cull,
+        gt_cull,
         config,
     } = args;
     use himap::eval::{Culling, EvalOptions};
-    let culling = match cull.as_str() {
-        "none" => Culling::None,
-        "frustum" => Culling::Frustum,
-        "occlusion" => Culling::FrustumOcclusion,
-        other => anyhow::bail!("unknown culling '{other}': use none, frustum or occlusion"),
+    let parse = |c: &str| {
+        Ok(match c {
+            "none" => Culling::None,
+            "frustum" => Culling::Frustum,
+            "occlusion" => Culling::FrustumOcclusion,
+            other => anyhow::bail!("unknown culling '{other}': use none, frustum or occlusion"),
+        })
     };
+    let (culling, gt_culling) = (parse(&cull)?, parse(&gt_cull)?);
     let dataset = match config {
         Some(p) => himap::config::Config::from_file(&p)?.dataset,
         None => Default::default(),
@@ -680,6 +688,7 @@ fn eval(args: EvalArgs) -> anyhow::Result<()> {
     let opts = EvalOptions {
         n_samples: samples,
         culling,
+        gt_culling,
         dataset,
         ..EvalOptions::default()
     };

@@ -592,6 +592,36 @@ fn source_patch<I: FrameImages + ?Sized>(
     }
 }
 
+/// How many window frames (the source excluded) see pixel `(u, v)` of frame `src` at `depth`
+/// by [`warp_pixel`]'s rule (the centre projects in front of the camera and `cfg.margin`
+/// inside the image), without computing the loss: the planarity prior acts only where the
+/// warping term has its `min_views`.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub fn warp_view_count<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
+    cfg: &WarpConfig,
+    k: &Intrinsics,
+    poses: &PS,
+    n_frames: usize,
+    src: usize,
+    u: u32,
+    v: u32,
+    depth: f32,
+    images: &I,
+) -> u32 {
+    let (w, h) = images.size();
+    let n = window_len(n_frames, poses.count());
+    if src >= n || w == 0 || h == 0 {
+        return 0;
+    }
+    let dir = k.direction(u as f32, v as f32);
+    let x = poses
+        .pose(src)
+        .transform([depth * dir[0], depth * dir[1], depth * dir[2]]);
+    let mut centres = [[0.0f32; 2]; MAX_WINDOW];
+    valid_views::<I, PS>(cfg, k, poses, n, src, x, (w, h), &mut centres).1
+}
+
 /// Which window frames (other than `src`) see the patch centre `x_centre` validly: a bit mask
 /// and its count. On the CPU the projected centres go to `centres` (for the cache hints).
 #[inline(always)]

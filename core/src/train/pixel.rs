@@ -14,7 +14,7 @@ use crate::field::model::{
 };
 use crate::field::render::RayOutput;
 use crate::loss::planar::{planarity, PlanarConfig};
-use crate::loss::warp::{warp_pixel, FrameImages, WarpConfig, MAX_WINDOW};
+use crate::loss::warp::{warp_pixel, warp_view_count, FrameImages, WarpConfig, MAX_WINDOW};
 use crate::ParamRead;
 
 /// Packs an RGB colour in [0, 1] into RGBA8 (alpha 255), rounding to nearest.
@@ -344,6 +344,12 @@ pub fn pixel_loss<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         && m < 3
         && is_line_triplet(&triplet.pixels)
         && (triplet.pixels[0].frame as usize) < window.poses.count()
+        && centre_has_views(
+            window,
+            triplet,
+            if m == 1 { out.depth } else { triplet.depth[1] },
+            loss,
+        )
     {
         let f = triplet.pixels[0].frame as usize;
         let texel = |p: PixelSample| window.images.texel(f, p.u, p.v);
@@ -367,6 +373,32 @@ pub fn pixel_loss<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         d_depth += kp * pick(g, m);
     }
     (result, d_color, d_depth)
+}
+
+/// Whether the centre of a planarity triplet, at its rendered depth `depth`, has the warping
+/// term's `min_views` valid views: the prior shapes plain surfaces the window sees, not space
+/// only the newest frames look into (there, carrying a near edge's depth along an image line
+/// into the unexplored room beyond broke the exploration front; ARCHITECTURE.md). All three
+/// items of a triplet decide from the same centre depth.
+#[inline(always)]
+fn centre_has_views<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
+    window: &WindowView<'_, I, PS>,
+    triplet: &PixelTriplet,
+    depth: f32,
+    loss: &MappingLoss,
+) -> bool {
+    let c = triplet.pixels[1];
+    warp_view_count(
+        &loss.warp,
+        &window.k,
+        window.poses,
+        window.poses.count(),
+        c.frame as usize,
+        c.u,
+        c.v,
+        depth,
+        window.images,
+    ) >= loss.warp.min_views
 }
 
 /// Forward, losses and backward for one sampled pixel. `pixel_id` seeds the stratified jitter
@@ -562,12 +594,14 @@ mod tests {
 
     /// The planarity term: each member of a line triplet gets its own component of the
     /// triplet's gradient (`color_scale * weight * d planarity / d depth`) and a third of its
-    /// loss; a triplet that is not a line, or an item of none, gets nothing.
+    /// loss; a triplet that is not a line, or an item of none, gets nothing, nor a triplet
+    /// whose centre has fewer than `min_views` (4) valid warp views.
     #[test]
     fn planarity_gives_each_member_its_component() {
-        let (w, h) = (8u32, 6u32);
+        let (w, h) = (40u32, 30u32);
         let px = std::vec![0xff80_8080u32; (w * h) as usize];
-        let poses = [Pose::IDENTITY];
+        // five frames at one pose: the centre projects inside the other four
+        let poses = [Pose::IDENTITY; 5];
         let mut imgs = None;
         let window = one_frame(w, h, &px, &poses, &mut imgs);
         let planar = PlanarConfig {
@@ -613,7 +647,7 @@ mod tests {
             let (r, _, d) = pixel_loss(&window, pixels[1], &ray, &out, 4, &loss, &t);
             (r.color_loss, d)
         };
-        let line = [at(2, 3), at(4, 3), at(6, 3)];
+        let line = [at(18, 15), at(20, 15), at(22, 15)];
         for m in 0..3u32 {
             let (l, d) = run(line, m);
             assert_eq!(d, 0.25 * 2.0 * g[m as usize], "member {m}");
@@ -621,9 +655,30 @@ mod tests {
         }
         assert_eq!(run(line, 3), (0.0, 0.0));
         // not equally spaced, or not one frame: no term
-        assert_eq!(run([at(2, 3), at(4, 3), at(5, 3)], 0), (0.0, 0.0));
+        assert_eq!(run([at(18, 15), at(20, 15), at(21, 15)], 0), (0.0, 0.0));
         let mut other = line;
         other[2].frame = 1;
         assert_eq!(run(other, 0), (0.0, 0.0));
+        // a centre near the border (outside the warp margin in every other view) or a window
+        // of four frames (three other views): no term for any member
+        let edge = [at(0, 2), at(2, 2), at(4, 2)];
+        let t = |pixels, depth: [f32; 3], member| PixelTriplet {
+            pixels,
+            depth,
+            member,
+        };
+        let mut out = RayOutput::zeroed();
+        out.depth = 1.0;
+        for m in 0..3u32 {
+            let (r, _, d) = pixel_loss(&window, edge[1], &ray, &out, 4, &loss, &t(edge, depths, m));
+            assert_eq!((r.color_loss, d), (0.0, 0.0), "member {m}");
+        }
+        let mut imgs4 = None;
+        let window4 = one_frame(w, h, &px, &poses[..4], &mut imgs4);
+        for m in 0..3u32 {
+            let (r, _, d) =
+                pixel_loss(&window4, line[1], &ray, &out, 4, &loss, &t(line, depths, m));
+            assert_eq!((r.color_loss, d), (0.0, 0.0), "member {m}");
+        }
     }
 }

@@ -475,6 +475,7 @@ mod tests {
             final_depth_l1_cm: None,
             final_per_frame: Vec::new(),
             mesh: None,
+            mesh_observed_gt: None,
             mesh_ground_truth: None,
             mesh_error: Some("no ground truth".into()),
             mesh_faces: 1234,

@@ -283,6 +283,10 @@ where
         live.finish()?;
     }
     let (mesh_metrics, mesh_gt, mesh_err) = evaluate_mesh(opts, ds, &surface);
+    let mesh_observed_gt = match (&mesh_gt, &mesh_metrics) {
+        (Some(kind), Some(_)) if kind == "mesh" => evaluate_mesh_observed(opts, ds, &surface),
+        _ => None,
+    };
     let data = backend.export()?;
     save_map(&opts.out.join("map.safetensors"), cfg, &data)?;
 
@@ -311,6 +315,7 @@ where
         final_depth_l1_cm: fin.depth_l1_cm,
         final_per_frame: fin.per_frame,
         mesh: mesh_metrics,
+        mesh_observed_gt,
         mesh_ground_truth: mesh_gt,
         mesh_error: mesh_err,
         mesh_faces: surface.faces,
@@ -777,6 +782,37 @@ fn evaluate_mesh(
         Ok(r) => (Some(r.metrics), Some(r.gt_kind), None),
         Err(e) => (None, None, Some(format!("{e:#}"))),
     }
+}
+
+/// [`evaluate_mesh`] against the ground-truth mesh culled by the dataset's frames (frustum
+/// and occlusion with a depth ground truth, else frustum), the reconstruction culled as
+/// configured; `None` when it fails (the whole-mesh metrics already say why).
+fn evaluate_mesh_observed(
+    opts: &MapOptions,
+    ds: &dyn crate::dataset::Dataset,
+    surface: &SurfaceOutputs,
+) -> Option<crate::eval::MeshMetrics> {
+    use crate::eval::{Culling, EvalOptions};
+    let cfg = &opts.config;
+    let culling = match cfg.eval.cull.as_str() {
+        "frustum" => Culling::Frustum,
+        "occlusion" => Culling::FrustumOcclusion,
+        _ => Culling::None,
+    };
+    let eo = EvalOptions {
+        n_samples: cfg.eval.mesh_samples,
+        culling,
+        gt_culling: if ds.has_depth() {
+            Culling::FrustumOcclusion
+        } else {
+            Culling::Frustum
+        },
+        dataset: cfg.dataset.clone(),
+        ..EvalOptions::default()
+    };
+    crate::eval::eval_report(&surface.path, &opts.dataset, &eo)
+        .ok()
+        .map(|r| r.metrics)
 }
 
 /// A mapping failure mid-run (`at`: the frame or the final update): the backend's own error
