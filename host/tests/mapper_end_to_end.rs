@@ -69,6 +69,12 @@ fn map_writes_all_outputs_and_the_loss_goes_down() {
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(json["config"]["mapper"]["init_iters"], 40);
+    // A dataset with a ground-truth mesh: also the metrics against its observed part (the
+    // same reconstruction samples, another truth).
+    let (whole, observed) = (s.mesh.unwrap(), s.mesh_observed_gt.unwrap());
+    assert_eq!(observed.n_samples, whole.n_samples);
+    assert!(observed.completion_cm.is_finite() && observed.completion_cm != whole.completion_cm);
+    assert!(json["mesh_observed_gt"]["completion_ratio_pct"].is_number());
 }
 
 #[test]
