@@ -87,6 +87,18 @@ pub enum Culling {
     FrustumOcclusion,
 }
 
+impl Culling {
+    /// `none`, `frustum` or `occlusion` (frustum and occlusion); `None` for any other name.
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "none" => Some(Self::None),
+            "frustum" => Some(Self::Frustum),
+            "occlusion" => Some(Self::FrustumOcclusion),
+            _ => None,
+        }
+    }
+}
+
 /// Options of the mesh evaluation.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]

@@ -673,12 +673,8 @@ fn eval(args: EvalArgs) -> anyhow::Result<()> {
     } = args;
     use himap::eval::{Culling, EvalOptions};
     let parse = |c: &str| {
-        Ok(match c {
-            "none" => Culling::None,
-            "frustum" => Culling::Frustum,
-            "occlusion" => Culling::FrustumOcclusion,
-            other => anyhow::bail!("unknown culling '{other}': use none, frustum or occlusion"),
-        })
+        Culling::from_name(c)
+            .with_context(|| format!("unknown culling '{c}': use none, frustum or occlusion"))
     };
     let (culling, gt_culling) = (parse(&cull)?, parse(&gt_cull)?);
     let dataset = match config {

@@ -479,17 +479,24 @@ pub fn mlp_backward<P: ParamRead + ?Sized, S: GradSink>(
         fan_out = fan_in;
         kk += 1;
     }
-    // Bulk copies on the CPU, the element loop in the shaders: the same values.
+    copy_prefix(d_input, &delta, n_in);
+}
+
+/// `dst[..n]` from `src[..n]` and the rest of `dst` 0 (`n` at most [`MAX_WIDTH`]): slice
+/// copies on the CPU, the element loop in the shaders (the same values).
+#[inline(always)]
+pub(crate) fn copy_prefix(dst: &mut [f32; MAX_WIDTH], src: &[f32; MAX_WIDTH], n: usize) {
     #[cfg(not(target_arch = "spirv"))]
     {
-        d_input[..n_in].copy_from_slice(&delta[..n_in]);
-        d_input[n_in..].fill(0.0);
+        let n = n.min(MAX_WIDTH);
+        dst[..n].copy_from_slice(&src[..n]);
+        dst[n..].fill(0.0);
     }
     #[cfg(target_arch = "spirv")]
     {
         let mut i = 0;
         while i < MAX_WIDTH {
-            d_input[i] = if i < n_in { delta[i] } else { 0.0 };
+            dst[i] = if i < n { src[i] } else { 0.0 };
             i += 1;
         }
     }

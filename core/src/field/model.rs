@@ -579,23 +579,8 @@ fn geometry_input(
     feat: &[f32; MAX_GRID_FEATURES],
     mlp_in: &mut [f32; MAX_WIDTH],
 ) {
-    let n = layout.geometry_grid.feature_dim();
-    // The CPU copies and clears the rows in bulk (a 128-step scalar loop per sample was 5 %
-    // of a training step); the shaders keep the element loop. The same values either way.
-    #[cfg(not(target_arch = "spirv"))]
-    {
-        let n = n.min(MAX_WIDTH);
-        mlp_in[..n].copy_from_slice(&feat[..n]);
-        mlp_in[n..].fill(0.0);
-    }
-    #[cfg(target_arch = "spirv")]
-    {
-        let mut i = 0;
-        while i < MAX_WIDTH {
-            mlp_in[i] = if i < n { feat[i] } else { 0.0 };
-            i += 1;
-        }
-    }
+    // (a 128-step scalar loop per sample was 5 % of a CPU training step)
+    mlp::copy_prefix(mlp_in, feat, layout.geometry_grid.feature_dim());
 }
 
 #[inline(always)]

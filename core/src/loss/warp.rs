@@ -383,6 +383,21 @@ fn warp_view_lanes<I: FrameImages + ?Sized>(
     }
 }
 
+/// The window's length (`n_frames` cut to the poses given), the images' size, and whether
+/// `src` is one of the window's frames with non-empty images (the guard of [`warp_pixel`] and
+/// [`warp_view_count`]).
+#[inline(always)]
+fn source_window<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
+    poses: &PS,
+    n_frames: usize,
+    src: usize,
+    images: &I,
+) -> (usize, u32, u32, bool) {
+    let (w, h) = images.size();
+    let n = window_len(n_frames, poses.count());
+    (n, w, h, src < n && w > 0 && h > 0)
+}
+
 /// Loss of one source pixel (integer pixel `u`, `v` of window frame `src`), warped with the
 /// fronto-parallel plane at rendered centre depth `depth` into every other frame of the
 /// window (`0..n_frames`, `poses[j]` camera-to-world, `images` frame `j`), and its derivative
@@ -399,9 +414,8 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     depth: f32,
     images: &I,
 ) -> WarpResult {
-    let (w, h) = images.size();
-    let n = window_len(n_frames, poses.count());
-    if src >= n || w == 0 || h == 0 {
+    let (n, w, h, ok) = source_window(poses, n_frames, src, images);
+    if !ok {
         return WarpResult::default();
     }
     let half = patch_half(cfg);
@@ -609,9 +623,8 @@ pub fn warp_view_count<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     depth: f32,
     images: &I,
 ) -> u32 {
-    let (w, h) = images.size();
-    let n = window_len(n_frames, poses.count());
-    if src >= n || w == 0 || h == 0 {
+    let (n, w, h, ok) = source_window(poses, n_frames, src, images);
+    if !ok {
         return 0;
     }
     let dir = k.direction(u as f32, v as f32);

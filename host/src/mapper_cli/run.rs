@@ -282,9 +282,19 @@ where
         live.mesh(last, &crate::mesh::Mesh::read_ply(&surface.path)?);
         live.finish()?;
     }
-    let (mesh_metrics, mesh_gt, mesh_err) = evaluate_mesh(opts, ds, &surface);
+    use crate::eval::Culling;
+    let (mesh_metrics, mesh_gt, mesh_err) = evaluate_mesh(opts, ds, &surface, Culling::None);
+    // Against a ground-truth mesh, also against its part the frames observe (frustum and
+    // occlusion with a depth ground truth, else frustum).
     let mesh_observed_gt = match (&mesh_gt, &mesh_metrics) {
-        (Some(kind), Some(_)) if kind == "mesh" => evaluate_mesh_observed(opts, ds, &surface),
+        (Some(kind), Some(_)) if kind == "mesh" => {
+            let c = if ds.has_depth() {
+                Culling::FrustumOcclusion
+            } else {
+                Culling::Frustum
+            };
+            evaluate_mesh(opts, ds, &surface, c).0
+        }
         _ => None,
     };
     let data = backend.export()?;
@@ -747,10 +757,12 @@ where
 /// The mesh metrics against the dataset's ground truth (its `gt_mesh.ply`, else its depth)
 /// with the configured culling: metrics, the kind of ground truth, or why there are none
 /// (`(None, None, None)` when the dataset has no ground truth).
+/// `gt_culling` culls a ground-truth mesh by the dataset's frames (the observed ground truth).
 fn evaluate_mesh(
     opts: &MapOptions,
     ds: &dyn crate::dataset::Dataset,
     surface: &SurfaceOutputs,
+    gt_culling: crate::eval::Culling,
 ) -> (
     Option<crate::eval::MeshMetrics>,
     Option<String>,
@@ -765,16 +777,16 @@ fn evaluate_mesh(
     if surface.faces == 0 {
         return (None, None, Some("empty reconstruction".to_string()));
     }
-    let culling = match cfg.eval.cull.as_str() {
-        "none" => Culling::None,
-        "frustum" => Culling::Frustum,
-        "occlusion" => Culling::FrustumOcclusion,
-        _ if gt_mesh => Culling::None,
-        _ => Culling::Frustum,
-    };
+    // "auto": none against a ground-truth mesh, frustum against a depth ground truth
+    let culling = Culling::from_name(&cfg.eval.cull).unwrap_or(if gt_mesh {
+        Culling::None
+    } else {
+        Culling::Frustum
+    });
     let eo = EvalOptions {
         n_samples: cfg.eval.mesh_samples,
         culling,
+        gt_culling,
         dataset: cfg.dataset.clone(),
         ..EvalOptions::default()
     };
@@ -782,37 +794,6 @@ fn evaluate_mesh(
         Ok(r) => (Some(r.metrics), Some(r.gt_kind), None),
         Err(e) => (None, None, Some(format!("{e:#}"))),
     }
-}
-
-/// [`evaluate_mesh`] against the ground-truth mesh culled by the dataset's frames (frustum
-/// and occlusion with a depth ground truth, else frustum), the reconstruction culled as
-/// configured; `None` when it fails (the whole-mesh metrics already say why).
-fn evaluate_mesh_observed(
-    opts: &MapOptions,
-    ds: &dyn crate::dataset::Dataset,
-    surface: &SurfaceOutputs,
-) -> Option<crate::eval::MeshMetrics> {
-    use crate::eval::{Culling, EvalOptions};
-    let cfg = &opts.config;
-    let culling = match cfg.eval.cull.as_str() {
-        "frustum" => Culling::Frustum,
-        "occlusion" => Culling::FrustumOcclusion,
-        _ => Culling::None,
-    };
-    let eo = EvalOptions {
-        n_samples: cfg.eval.mesh_samples,
-        culling,
-        gt_culling: if ds.has_depth() {
-            Culling::FrustumOcclusion
-        } else {
-            Culling::Frustum
-        },
-        dataset: cfg.dataset.clone(),
-        ..EvalOptions::default()
-    };
-    crate::eval::eval_report(&surface.path, &opts.dataset, &eo)
-        .ok()
-        .map(|r| r.metrics)
 }
 
 /// A mapping failure mid-run (`at`: the frame or the final update): the backend's own error
