@@ -55,7 +55,7 @@
 //! core without the feature).
 
 use crate::camera::{Intrinsics, Pose};
-use crate::field::model::{Group, Ray, RayResult};
+use crate::field::model::{Group, Ray, RayResult, NUM_GROUPS};
 use crate::loss::planar::PlanarConfig;
 use crate::loss::warp::{WarpConfig, MAX_WINDOW};
 use crate::rng::{hash_u32, SplitMix};
@@ -564,7 +564,11 @@ pub struct Mapper<'a, B: Backend> {
     /// is `rng`, [`Self::state`] reads it).
     st: MapperState,
     rng: SplitMix,
+    /// One batch of `cfg.pixels` samples, or two (the next iteration's drawn while the
+    /// backend runs the current one).
     pixels: &'a mut [PixelSample],
+    /// Where [`Self::sample_pixels`] and [`Self::make_triplets`] write in `pixels`.
+    pix_off: usize,
     results: &'a mut [PixelResult],
     win_ids: Vec<u32, MAX_WINDOW>,
     win_poses: Vec<Pose, MAX_WINDOW>,
@@ -577,8 +581,12 @@ pub struct Mapper<'a, B: Backend> {
 
 impl<'a, B: Backend> Mapper<'a, B> {
     /// A mapper over `backend` (whose image store must match `k` and hold
-    /// [`MapperConfig::slots_needed`] slots). `pixels` and `results` must each hold exactly
-    /// `cfg.pixels` entries.
+    /// [`MapperConfig::slots_needed`] slots). `results` must hold exactly `cfg.pixels`
+    /// entries and `pixels` either as many or twice as many: with two batches the mapper
+    /// draws the next iteration's pixels before the current one's results are in and hands
+    /// both to [`Backend::map_step`], so a GPU backend can queue the next step behind the
+    /// current one (no host round trip between iterations). The map is the same bits
+    /// either way.
     pub fn new(
         backend: B,
         cfg: MapperConfig,
@@ -593,7 +601,9 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 "mapper: intrinsics size differs from the backend's image store",
             ));
         }
-        crate::error::check_len("mapper pixel buffer", pixels.len(), cfg.pixels as usize)?;
+        if pixels.len() != 2 * cfg.pixels as usize {
+            crate::error::check_len("mapper pixel buffer", pixels.len(), cfg.pixels as usize)?;
+        }
         crate::error::check_len("mapper result buffer", results.len(), cfg.pixels as usize)?;
         let n_slots = cfg.slots_needed() as usize;
         // Popped from the end: slot 0 is used first.
@@ -618,6 +628,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
             },
             rng: SplitMix::new(cfg.seed),
             pixels,
+            pix_off: 0,
             results,
             win_ids: Vec::new(),
             win_poses: Vec::new(),
@@ -1220,7 +1231,8 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 first += 3;
                 continue;
             }
-            let mid = self.pixels[first + 1];
+            let o = self.pix_off;
+            let mid = self.pixels[o + first + 1];
             let s = 1 + self.rng.below(self.cfg.planar_spacing);
             let row = self.rng.below(2) == 0;
             let (lo, hi_u, hi_v) = (b + s, w - 1 - b - s, h - 1 - b - s);
@@ -1229,17 +1241,17 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 let u = mid.u.clamp(lo, hi_u);
                 a.u = u - s;
                 c.u = u + s;
-                self.pixels[first + 1].u = u;
+                self.pixels[o + first + 1].u = u;
             } else {
                 let v = mid.v.clamp(lo, hi_v);
                 a.v = v - s;
                 c.v = v + s;
-                self.pixels[first + 1].v = v;
+                self.pixels[o + first + 1].v = v;
             }
             a.frame = mid.frame;
             c.frame = mid.frame;
-            self.pixels[first] = a;
-            self.pixels[first + 2] = c;
+            self.pixels[o + first] = a;
+            self.pixels[o + first + 2] = c;
             first += 3;
         }
     }
@@ -1260,7 +1272,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
             while c < cnt {
                 let u = b + self.rng.below(w - 2 * b);
                 let v = b + self.rng.below(h - 2 * b);
-                self.pixels[idx] = PixelSample {
+                self.pixels[self.pix_off + idx] = PixelSample {
                     frame: f0 + f,
                     u,
                     v,
@@ -1293,12 +1305,12 @@ impl<'a, B: Backend> Mapper<'a, B> {
 
     /// [`IterInfo::new_loss_ratio`] and [`IterInfo::new_warp_valid`] of the results of the
     /// iteration just run.
-    fn new_frames_fit(&self) -> (f32, f32) {
+    fn new_frames_fit(&self, pixels: core::ops::Range<usize>) -> (f32, f32) {
         let n = self.win_ids.len() as u32;
         let first_new = n - (self.st.pending as u32).min(n);
         let (mut new_sum, mut new_n, mut new_valid) = (0.0f32, 0u32, 0u32);
         let (mut old_sum, mut old_n) = (0.0f32, 0u32);
-        for (p, r) in self.pixels.iter().zip(self.results.iter()) {
+        for (p, r) in self.pixels[pixels].iter().zip(self.results.iter()) {
             let l = r.color_loss + r.warp_loss;
             if p.frame >= first_new {
                 new_sum += l;
@@ -1319,13 +1331,75 @@ impl<'a, B: Backend> Mapper<'a, B> {
         ((new_sum / new_n as f32) / (old_sum / old_n as f32), valid)
     }
 
+    /// The pixels (and, with `lambda_planar`, the triplets) of one iteration, written at
+    /// `off` in the pixel buffer.
+    fn draw_batch(&mut self, kind: UpdateKind, off: usize) {
+        self.pix_off = off;
+        self.sample_pixels(kind);
+        if self.cfg.lambda_planar > 0.0 {
+            self.make_triplets();
+        }
+    }
+
+    /// The backend's learning rate of every group, in [`Group::ALL`] order.
+    fn backend_lrs(&self) -> [f32; NUM_GROUPS] {
+        core::array::from_fn(|g| self.backend.adam_lr(Group::ALL[g]))
+    }
+
+    /// The loss settings of iteration `it` of an update of `kind`, `total` iterations into the
+    /// run (the seed).
+    fn iter_loss(&self, kind: UpdateKind, it: u32, total: u32) -> MappingLoss {
+        let inv = 1.0 / self.cfg.pixels as f32;
+        let init = kind == UpdateKind::Init;
+        // An appearance-only refinement leaves the geometry's rates at 0: the terms that
+        // act only on the geometry (warping, depth priors, planarity) are not computed,
+        // which changes no parameter and makes its iterations cheaper.
+        let geometry = kind != UpdateKind::Refine || self.cfg.refine_geometry;
+        let on = |w: f32| if geometry { w } else { 0.0 };
+        MappingLoss {
+            lambda_color: if init {
+                self.cfg.lambda_color_init
+            } else {
+                self.cfg.lambda_color
+            },
+            lambda_warp: on(self.cfg.lambda_warp),
+            color_scale: inv,
+            warp_scale: inv,
+            color_to_geometry: init && it < self.cfg.init_color_iters,
+            seed: hash_u32(total ^ (self.cfg.seed as u32)),
+            warp: self.cfg.warp,
+            lambda_depth_prior: on(if init && it < self.cfg.depth_prior_iters {
+                self.cfg.lambda_depth_prior
+            } else {
+                self.cfg.lambda_depth_prior_online
+            }),
+            depth_prior: self.cfg.depth_prior,
+            depth_prior_near: if init && it < self.cfg.depth_prior_iters {
+                0.0
+            } else {
+                self.cfg.depth_prior_near
+            },
+            planar: PlanarConfig {
+                weight: on(self.cfg.lambda_planar),
+                edge: self.cfg.planar_edge,
+                beta: self.cfg.planar_beta,
+            },
+        }
+    }
+
+    /// Runs `iters` mapping iterations. Each step's batch carries its learning rates,
+    /// decided before the previous step's results are read (a reduction after rejected
+    /// steps applies from the step after next), so a backend that queues the next step
+    /// early trains the same bits as one that does not.
     fn run_iters<F: FnMut(&IterInfo)>(
         &mut self,
         kind: UpdateKind,
         iters: u32,
         observe: &mut F,
     ) -> Result<(IterInfo, IterInfo), MapperError<B::Error>> {
+        let n = self.cfg.pixels as usize;
         let inv = 1.0 / self.cfg.pixels as f32;
+        let two = self.pixels.len() == 2 * n;
         let mut first = IterInfo {
             kind,
             iter: 0,
@@ -1341,56 +1415,38 @@ impl<'a, B: Backend> Mapper<'a, B> {
         };
         let mut last = first;
         let mut it = 0;
+        let mut cur = 0;
+        if iters > 0 {
+            self.draw_batch(kind, cur);
+        }
+        let mut lr = self.backend_lrs();
         while it < iters {
-            self.sample_pixels(kind);
-            if self.cfg.lambda_planar > 0.0 {
-                self.make_triplets();
+            let ahead = two && it + 1 < iters;
+            let lr_next = self.backend_lrs();
+            let next_off = if two { n - cur } else { cur };
+            if ahead {
+                self.draw_batch(kind, next_off);
             }
-            let init = kind == UpdateKind::Init;
-            // An appearance-only refinement leaves the geometry's rates at 0: the terms that
-            // act only on the geometry (warping, depth priors, planarity) are not computed,
-            // which changes no parameter and makes its iterations cheaper.
-            let geometry = kind != UpdateKind::Refine || self.cfg.refine_geometry;
-            let on = |w: f32| if geometry { w } else { 0.0 };
-            let loss = MappingLoss {
-                lambda_color: if init {
-                    self.cfg.lambda_color_init
-                } else {
-                    self.cfg.lambda_color
-                },
-                lambda_warp: on(self.cfg.lambda_warp),
-                color_scale: inv,
-                warp_scale: inv,
-                color_to_geometry: init && it < self.cfg.init_color_iters,
-                seed: hash_u32(self.st.total_iters ^ (self.cfg.seed as u32)),
-                warp: self.cfg.warp,
-                lambda_depth_prior: on(if init && it < self.cfg.depth_prior_iters {
-                    self.cfg.lambda_depth_prior
-                } else {
-                    self.cfg.lambda_depth_prior_online
-                }),
-                depth_prior: self.cfg.depth_prior,
-                depth_prior_near: if init && it < self.cfg.depth_prior_iters {
-                    0.0
-                } else {
-                    self.cfg.depth_prior_near
-                },
-                planar: PlanarConfig {
-                    weight: on(self.cfg.lambda_planar),
-                    edge: self.cfg.planar_edge,
-                    beta: self.cfg.planar_beta,
-                },
-            };
+            let total = self.st.total_iters;
+            let loss = self.iter_loss(kind, it, total);
+            let loss_next = self.iter_loss(kind, it + 1, total.wrapping_add(1));
             let batch = MapBatch {
                 k: self.k,
                 poses: &self.win_poses,
                 slots: &self.win_slots,
-                pixels: self.pixels,
+                pixels: &self.pixels[cur..cur + n],
                 loss,
+                lr: Some(lr),
+            };
+            let next = MapBatch {
+                pixels: &self.pixels[next_off..next_off + n],
+                loss: loss_next,
+                lr: Some(lr_next),
+                ..batch
             };
             let stats = self
                 .backend
-                .map_step(&batch, self.results)
+                .map_step(&batch, self.results, if ahead { Some(&next) } else { None })
                 .map_err(MapperError::Backend)?;
             self.st.total_iters = self.st.total_iters.wrapping_add(1);
             let mut c = 0.0f32;
@@ -1417,7 +1473,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 new_warp_valid: 0.0,
             };
             if it == 0 && kind == UpdateKind::Online {
-                (info.new_loss_ratio, info.new_warp_valid) = self.new_frames_fit();
+                (info.new_loss_ratio, info.new_warp_valid) = self.new_frames_fit(cur..cur + n);
             }
             if stats.rejected {
                 self.on_rejected_step()?;
@@ -1430,6 +1486,11 @@ impl<'a, B: Backend> Mapper<'a, B> {
             last = info;
             observe(&info);
             it += 1;
+            if it < iters && !two {
+                self.draw_batch(kind, cur);
+            }
+            cur = next_off;
+            lr = lr_next;
         }
         Ok((first, last))
     }
@@ -1494,6 +1555,16 @@ mod tests {
         /// Results that depend on the pixel's window frame `f`: colour loss `0.25 (f + 1)`,
         /// `f` valid warp views for even `f` and none for odd (otherwise 0.25 and none).
         by_frame: bool,
+        /// The batch the last step promised as the next one.
+        queued: Option<Queued>,
+        /// Steps that came with a next batch.
+        nexts: u32,
+    }
+
+    struct Queued {
+        pixels: Vec<PixelSample>,
+        lr: Option<[f32; crate::field::model::NUM_GROUPS]>,
+        seed: u32,
     }
 
     impl Mock {
@@ -1513,6 +1584,8 @@ mod tests {
                 lr: [0.01; crate::field::model::NUM_GROUPS],
                 min_t: Vec::new(),
                 by_frame: false,
+                queued: None,
+                nexts: 0,
             }
         }
     }
@@ -1569,14 +1642,27 @@ mod tests {
             &mut self,
             batch: &MapBatch<'_>,
             results: &mut [PixelResult],
+            next: Option<&MapBatch<'_>>,
         ) -> Result<StepStats, Error> {
             crate::train::backend::window_slots(batch, &self.store)?;
+            // a promised batch must be the one that comes
+            if let Some(q) = self.queued.take() {
+                assert_eq!(q.pixels, batch.pixels);
+                assert_eq!(q.lr, batch.lr);
+                assert_eq!(q.seed, batch.loss.seed);
+            }
+            self.queued = next.map(|b| Queued {
+                pixels: b.pixels.to_vec(),
+                lr: b.lr,
+                seed: b.loss.seed,
+            });
+            self.nexts += next.is_some() as u32;
             self.calls.push(Call {
                 slots: batch.slots.to_vec(),
                 pixels: batch.pixels.to_vec(),
                 lambda_color: batch.loss.lambda_color,
                 color_to_geometry: batch.loss.color_to_geometry,
-                lr: self.lr[0],
+                lr: batch.lr.map_or(self.lr[0], |l| l[0]),
             });
             for (r, p) in results.iter_mut().zip(batch.pixels) {
                 let f = p.frame;
@@ -2053,6 +2139,50 @@ mod tests {
         let mut bad = cfg();
         bad.rejected_lr_factor = 0.0;
         assert!(refused(bad));
+    }
+
+    #[test]
+    fn two_pixel_batches_queue_the_same_steps_as_one() {
+        // every step rejected, so the learning rates change during the run; planarity
+        // triplets on, so the drawing of the next batch covers them too
+        let mut c = cfg();
+        c.rejected_lr_after = 3;
+        c.rejected_lr_factor = 0.5;
+        c.lambda_planar = 0.1;
+        let run = |two: bool| {
+            let n = c.pixels as usize * if two { 2 } else { 1 };
+            let mut px = vec![PixelSample::default(); n];
+            let (_, mut res) = buffers();
+            let mut backend = Mock::new(c.slots_needed());
+            backend.reject = true;
+            let mut m = Mapper::new(backend, c, intr(), &mut px, &mut res).unwrap();
+            let img = image();
+            for id in 0..20 {
+                m.push_frame(&img, pose(id)).unwrap();
+            }
+            let b = m.into_backend();
+            assert!(b.queued.is_none(), "a promised step never came");
+            (b.calls, b.nexts)
+        };
+        let (one, nexts_one) = run(false);
+        let (two, nexts_two) = run(true);
+        assert_eq!(nexts_one, 0);
+        // every iteration but the last of each update (7 + 4 iterations) promised its next
+        assert_eq!((one.len(), nexts_two), (11, 6 + 3));
+        for (a, b) in one.iter().zip(two.iter()) {
+            assert_eq!((&a.slots, &a.pixels), (&b.slots, &b.pixels));
+            assert_eq!(
+                (a.lambda_color, a.color_to_geometry),
+                (b.lambda_color, b.color_to_geometry)
+            );
+            assert_eq!(a.lr.to_bits(), b.lr.to_bits());
+        }
+        // a reduction after the 3rd and the 6th rejected step applies from the step after
+        // the next (the next one was already prepared)
+        let lrs: Vec<f32> = one.iter().take(7).map(|c| c.lr).collect();
+        assert_eq!(lrs, [0.01, 0.01, 0.01, 0.01, 0.005, 0.005, 0.005]);
+        // the online update starts from the rates the initialisation left (two reductions)
+        assert_eq!(one[7].lr, 0.0025);
     }
 
     #[test]

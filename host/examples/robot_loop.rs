@@ -389,7 +389,8 @@ where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
     let mc = cfg.mapper_config()?;
-    let mut px = vec![PixelSample::default(); mc.pixels as usize];
+    // two pixel batches let a GPU backend queue each next iteration (same map either way)
+    let mut px = vec![PixelSample::default(); 2 * mc.pixels as usize];
     let mut res = vec![PixelResult::default(); mc.pixels as usize];
     let mut mapper = Mapper::new(backend, mc, k, &mut px, &mut res)
         .map_err(|e| anyhow::anyhow!("mapper: {e}"))?;

@@ -913,9 +913,13 @@ impl Backend for ParallelCpuBackend {
         &mut self,
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
+        _next: Option<&MapBatch<'_>>,
     ) -> Result<StepStats, CpuError> {
+        let adam = batch.adam(&self.adam)?;
         let mut stats = self.accumulate_pixels(batch, results)?;
+        let saved = std::mem::replace(&mut self.adam, adam);
         self.finish_step(&mut stats);
+        self.adam = saved;
         Ok(stats)
     }
 

@@ -199,12 +199,37 @@ pub fn bench_vulkan(
         paper_adam(),
         options,
     )?;
+    // Steps until the backend has timed both backward structures and chosen one (it
+    // alternates them on its first steps), so that the timed steps run the chosen one.
+    {
+        let batch = rays_in_dirs(&cfg.aabb, rays, 5, cfg.samples == 64);
+        let mut res = vec![RayResult::default(); rays];
+        let mut s = 0;
+        while be.backward_pass().0.is_none() && s < 16 {
+            let loss = LossConfig {
+                lambda_color: 1.0,
+                lambda_depth: 0.0,
+                ray_scale: 1.0 / rays as f32,
+                color_to_geometry: true,
+                seed: 1000 + s,
+            };
+            be.train_step(&batch, &loss, &mut res)?;
+            s += 1;
+        }
+    }
     let t = measure(&mut be, cfg, rays, steps)?;
     let batch_bytes = rays * (10 + 6) * 4 + rays * cfg.samples as usize * 9 * 4;
     let mut r = row(be.name(), name, cfg, &layout, rays, batch_bytes, t);
-    if !be.workgroup_sums() {
-        r.backend += " (global atomics)";
-    }
+    // the backward's structure: fixed, or chosen by timing both on the first steps
+    let (chosen, ms) = be.backward_pass();
+    r.backend += &match (chosen, ms) {
+        (Some(c), [Some(g), Some(w)]) => format!(
+            " (backward: {}; {g:.1} ms global atomics, {w:.1} ms workgroup sums)",
+            c.name()
+        ),
+        (Some(c), _) => format!(" (backward: {})", c.name()),
+        (None, _) => " (backward: still timing both)".to_string(),
+    };
     if !profile {
         return Ok((r, None));
     }

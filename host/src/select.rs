@@ -175,7 +175,7 @@ impl MapBackend for VulkanBackend {
             self.write_params(g, &data.params[i], false)?;
             self.write_adam(g, &data.m[i], &data.v[i])?;
         }
-        self.set_steps(data.t);
+        self.set_steps(data.t)?;
         Ok(())
     }
 

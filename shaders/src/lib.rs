@@ -38,7 +38,8 @@ use himap_core::field::render::MAX_SAMPLES;
 pub use himap_core::gpu_abi::WORKGROUP_SIZE;
 use himap_core::gpu_abi::{
     pixel_result_record, ray_result_record, words, AdamPush, KernelPush, LossCheckPush, RangePush,
-    SamplePush, TrainPush, PARAM_BINDINGS, RAY_FLOATS, SAMPLE_FLOATS,
+    SamplePush, TrainPush, PARAM_BINDINGS, RAY_FLOATS, SAMPLE_FLOATS, STATUS_REJECTED,
+    STATUS_STEPS, STATUS_WORDS,
 };
 use himap_core::train::adam;
 use himap_core::train::fixed;
@@ -1217,15 +1218,35 @@ pub fn adam_check_cs(
     if i >= params.len() || i >= m.len() || i >= v.len() || i >= grad.len() {
         return;
     }
-    let s = pc.step;
+    if status.len() < STATUS_WORDS {
+        return;
+    }
+    let s = pc.step.at(status[STATUS_STEPS].wrapping_add(1));
     if !adam::adam_update_is_finite(&s, params[i], m[i], v[i], fixed::from_fixed(grad[i])) {
         count_nonfinite(status);
     }
 }
 
+/// The end of a step: counts it as taken (`status[STATUS_STEPS] += 1`) unless its checks
+/// counted a non-finite value. One invocation.
+///
+/// - binding 0 `status` (`gpu_abi::STATUS_WORDS`).
+#[spirv(compute(threads(64)))]
+pub fn step_count_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &RangePush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] status: &mut [u32],
+) {
+    if id.x != 0 || pc.n == 0 || status.len() < STATUS_WORDS || status[STATUS_REJECTED] != 0 {
+        return;
+    }
+    status[STATUS_STEPS] = status[STATUS_STEPS].wrapping_add(1);
+}
+
 /// Adam on one parameter per invocation (`adam::adam_update` with the gradient converted by
-/// `fixed::from_fixed`), the scalars of the step as push constants; nothing when the step's
-/// checks counted a non-finite value (the step is rejected).
+/// `fixed::from_fixed`), the scalars of the step as push constants with the bias corrections
+/// of the device's step count (`AdamStep::at(status[STATUS_STEPS] + 1)`); nothing when the
+/// step's checks counted a non-finite value (the step is rejected).
 ///
 /// - binding 0 `params`, binding 1 `m`, binding 2 `v` (f32), binding 3 `grad` (i64);
 /// - binding 4 `status` ([`loss_check_cs`], [`adam_check_cs`]).
@@ -1239,14 +1260,14 @@ pub fn adam_cs(
     #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] grad: &[i64],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] status: &[u32],
 ) {
-    if id.x >= pc.n || status.is_empty() || status[0] != 0 {
+    if id.x >= pc.n || status.len() < STATUS_WORDS || status[STATUS_REJECTED] != 0 {
         return;
     }
     let i = (pc.first + id.x) as usize;
     if i >= params.len() || i >= m.len() || i >= v.len() || i >= grad.len() {
         return;
     }
-    let s = pc.step;
+    let s = pc.step.at(status[STATUS_STEPS].wrapping_add(1));
     let mut p = params[i];
     let mut mi = m[i];
     let mut vi = v[i];

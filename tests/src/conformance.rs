@@ -500,7 +500,11 @@ fn line_triplets(pixels: &mut [PixelSample], k: &Intrinsics, rng: &mut SplitMix)
 
 /// Mapping iterations (`pixel_train`: colour L1 + DIM-SLAM warping loss through the rendered
 /// depth + depth prior) over a window whose slot table is not the identity: per-pixel
-/// results, statistics, and the whole state after four iterations.
+/// results, statistics, and the whole state after four iterations. The candidate is handed
+/// each next batch ([`Backend::map_step`]'s `next`: the Vulkan backend queues it behind the
+/// current step) while the reference runs one step at a time; the second step's learning
+/// rates overflow Adam, so it is rejected while the third is already queued (which must
+/// still use the reference's step count), and the fourth has rates of its own.
 pub fn mapping_steps<C: Candidate>(c: &C) {
     let frames = 6;
     let (data, k, poses, images) = synthetic_window(RenderMode::SdfDensity, frames);
@@ -526,28 +530,42 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
             cpu.upload_frame(slot, img).unwrap();
             b.upload_frame(slot, img).unwrap();
         }
-        for step in 0..4u32 {
-            let mut pixels: Vec<PixelSample> = (0..n)
-                .map(|_| PixelSample {
-                    frame: (rng.unit() * frames as f32) as u32 % frames as u32,
-                    u: (rng.unit() * k.width as f32) as u32 % k.width,
-                    v: (rng.unit() * k.height as f32) as u32 % k.height,
-                })
-                .collect();
-            if step % 2 == 1 {
-                line_triplets(&mut pixels, &k, &mut rng);
-            }
-            let batch = MapBatch {
-                k,
-                poses: &poses,
-                slots: &slots,
-                pixels: &pixels,
-                loss: mapping_loss(step, n),
-            };
+        let steps = 4u32;
+        let pixels: Vec<Vec<PixelSample>> = (0..steps)
+            .map(|step| {
+                let mut pixels: Vec<PixelSample> = (0..n)
+                    .map(|_| PixelSample {
+                        frame: (rng.unit() * frames as f32) as u32 % frames as u32,
+                        u: (rng.unit() * k.width as f32) as u32 % k.width,
+                        v: (rng.unit() * k.height as f32) as u32 % k.height,
+                    })
+                    .collect();
+                if step % 2 == 1 {
+                    line_triplets(&mut pixels, &k, &mut rng);
+                }
+                pixels
+            })
+            .collect();
+        let batch = |step: u32| MapBatch {
+            k,
+            poses: &poses,
+            slots: &slots,
+            pixels: &pixels[step as usize],
+            loss: mapping_loss(step, n),
+            lr: match step {
+                1 => Some([3e38; NUM_GROUPS]),
+                3 => Some([0.02, 0.005, 0.001, 0.002, 0.01]),
+                _ => None,
+            },
+        };
+        for step in 0..steps {
+            let next = (step + 1 < steps).then(|| batch(step + 1));
+            let batch = batch(step);
             let mut rc = vec![PixelResult::default(); n];
             let mut rb = rc.clone();
-            let sc = cpu.map_step(&batch, &mut rc).unwrap();
-            let sb = b.map_step(&batch, &mut rb).unwrap();
+            let sc = cpu.map_step(&batch, &mut rc, None).unwrap();
+            let sb = b.map_step(&batch, &mut rb, next.as_ref()).unwrap();
+            assert_eq!(sc.rejected, step == 1, "step {step}: rejected");
             assert_same_f32(
                 &format!("step {step} pixels"),
                 &pixel_floats(&rc),
@@ -655,9 +673,10 @@ pub fn contract_errors<C: Candidate>(c: &C) {
         slots: &[0, 2],
         pixels: &pixels,
         loss: mapping_loss(0, 1),
+        lr: None,
     };
     assert!(
-        b.map_step(&batch, &mut res).is_err(),
+        b.map_step(&batch, &mut res, None).is_err(),
         "slot 2 does not exist"
     );
     let batch = MapBatch {
@@ -665,7 +684,7 @@ pub fn contract_errors<C: Candidate>(c: &C) {
         ..batch
     };
     assert!(
-        b.map_step(&batch, &mut res).is_err(),
+        b.map_step(&batch, &mut res, None).is_err(),
         "slot table shorter than the window"
     );
     let batch = MapBatch {
@@ -673,7 +692,7 @@ pub fn contract_errors<C: Candidate>(c: &C) {
         ..batch
     };
     assert!(
-        b.map_step(&batch, &mut []).is_err(),
+        b.map_step(&batch, &mut [], None).is_err(),
         "results of the wrong length"
     );
     let wrong_size = MapBatch {
@@ -681,12 +700,20 @@ pub fn contract_errors<C: Candidate>(c: &C) {
         ..batch
     };
     assert!(
-        b.map_step(&wrong_size, &mut res).is_err(),
+        b.map_step(&wrong_size, &mut res, None).is_err(),
         "intrinsics of another size"
     );
     b.read_params(Group::Beta, &mut [0.0]).unwrap();
     // nothing above took a step; an empty batch takes one
     let s = b.train_step(&[], &loss_config(0, 1), &mut []).unwrap();
     assert_eq!((s.t, s.rays_hit, s.loss, s.rejected), (1, 0, 0.0, false));
-    assert!(b.map_step(&batch, &mut res).is_ok());
+    assert!(b.map_step(&batch, &mut res, None).is_ok());
+    let bad_rate = MapBatch {
+        lr: Some([f32::NAN; NUM_GROUPS]),
+        ..batch
+    };
+    assert!(
+        b.map_step(&bad_rate, &mut res, None).is_err(),
+        "a learning rate that is not a number"
+    );
 }

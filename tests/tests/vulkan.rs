@@ -12,7 +12,7 @@ use himap_tests::conformance::{
     assert_same_f32, loss_config, result_floats, same, setup, test_adam, Reference,
 };
 use himap_tests::vulkan_or_skip;
-use himap_vulkan::{VulkanBackend, VulkanError, VulkanOptions};
+use himap_vulkan::{BackwardPass, VulkanBackend, VulkanError, VulkanOptions};
 
 /// Errors of the Vulkan backend carry the core's error for contract violations.
 #[test]
@@ -238,6 +238,7 @@ fn grids_split_across_two_bindings_match_cpu() {
     let options = VulkanOptions {
         max_binding_bytes: Some(part as u64 * 8),
         global_atomics_only: true,
+        ..VulkanOptions::default()
     };
     let mut gpu = VulkanBackend::with_options(data.layout, params, adam, options).unwrap();
     let mut reference = Reference::new(&data, ImageStore::default());
@@ -290,6 +291,56 @@ fn grids_split_across_two_bindings_match_cpu() {
         .err()
         .expect("three parts are not supported");
     assert!(matches!(e, VulkanError::TensorTooLarge { .. }), "{e}");
+}
+
+/// Where the device has both backward structures and timestamps, the first steps time both
+/// (alternating, one warm-up step each) and keep the faster; every step gives the CPU's
+/// bits whichever structure it used.
+#[test]
+fn the_backward_structure_is_chosen_by_timing_both() {
+    let (data, rays) = setup(RenderMode::SdfDensity, 5, 64);
+    let adam = test_adam();
+    let Some(mut gpu) = vulkan_or_skip(&data, adam) else {
+        return;
+    };
+    let mut cpu = ParallelCpuBackend::new(data.clone(), adam, 1).unwrap();
+    let n = rays.len();
+    let (mut rc, mut rg) = (vec![RayResult::default(); n], vec![RayResult::default(); n]);
+    assert_eq!(gpu.backward_pass().0.is_none(), gpu.workgroup_sums());
+    for step in 0..9 {
+        let loss = loss_config(step, n);
+        let sc = cpu.train_step(&rays, &loss, &mut rc).unwrap();
+        let sg = gpu.train_step(&rays, &loss, &mut rg).unwrap();
+        assert_eq!((sc.t, sc.rejected), (sg.t, sg.rejected));
+        assert_same_f32(
+            &format!("step {step}"),
+            &result_floats(&rc),
+            &result_floats(&rg),
+        );
+    }
+    for g in Group::ALL {
+        let len = data.layout.group_len(g);
+        let (mut c, mut q) = (vec![0.0f32; len], vec![0.0f32; len]);
+        cpu.read_params(g, &mut c).unwrap();
+        gpu.read_params(g, &mut q).unwrap();
+        assert_same_f32(&format!("{} params", g.name()), &c, &q);
+    }
+    let (chosen, ms) = gpu.backward_pass();
+    eprintln!("{}: backward {chosen:?}, least ms {ms:?}", gpu.name());
+    let chosen = chosen.expect("chosen after 9 steps");
+    if !gpu.workgroup_sums() {
+        assert_eq!(chosen, BackwardPass::GlobalAtomics);
+    } else if let [Some(global), Some(sums)] = ms {
+        let faster = if sums <= global {
+            BackwardPass::WorkgroupSums
+        } else {
+            BackwardPass::GlobalAtomics
+        };
+        assert_eq!(chosen, faster);
+    } else {
+        // no timestamps on this device: the structure built for real GPUs
+        assert_eq!((chosen, ms), (BackwardPass::WorkgroupSums, [None, None]));
+    }
 }
 
 /// `enable_profiling` times every pass of a training step with timestamp queries (and the
@@ -416,8 +467,9 @@ fn the_loop_canary_measures_the_budget_and_guards_the_warping_pass() {
                 depth_prior_near: 0.0,
                 planar: PlanarConfig::OFF,
             },
+            lr: None,
         };
-        gpu.map_step(&batch, res)
+        gpu.map_step(&batch, res, None)
     };
     match budget {
         Some(b) => {
@@ -466,9 +518,19 @@ fn workgroup_summed_backward_equals_global_atomics_and_the_cpu() {
             l.group_len(Group::AppearanceMlp),
         );
         eprintln!("{name}: decoders {geo} + {app} weights, {WORKGROUP_MLP_SLOTS} slots");
-        let Some(mut wg) = vulkan_or_skip(data, adam) else {
+        if vulkan_or_skip(data, adam).is_none() {
             return;
-        };
+        }
+        let mut wg = VulkanBackend::with_options(
+            l,
+            data.param_slices(),
+            adam,
+            VulkanOptions {
+                backward: Some(BackwardPass::WorkgroupSums),
+                ..VulkanOptions::default()
+            },
+        )
+        .unwrap();
         let mut global = VulkanBackend::with_options(
             l,
             data.param_slices(),

@@ -37,8 +37,10 @@ use crate::buffers::{
 };
 use crate::device;
 use crate::error::VulkanError;
-use crate::passes::{batch_push, dispatch_items, push_bytes, range_push, Passes, Pipelines};
-use crate::raw::{Buffer, Gpu, Memory, PhysicalInfo, ShaderModule};
+use crate::passes::{
+    batch_push, dispatch_items, push_bytes, range_push, BackwardPass, Passes, Pipelines,
+};
+use crate::raw::{Buffer, Gpu, Memory, PhysicalInfo, ShaderModule, FRAMES};
 use crate::words;
 use himap_core::error::check_len;
 use himap_core::field::model::{
@@ -47,7 +49,8 @@ use himap_core::field::model::{
 use himap_core::field::render::MAX_SAMPLES;
 use himap_core::gpu_abi::{
     pixel_result_from_record, ray_result_from_record, TrainPush, PIXEL_RESULT_FLOATS,
-    PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS, SAMPLE_FLOATS,
+    PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS, SAMPLE_FLOATS, STATUS_REJECTED,
+    STATUS_STEPS, STATUS_WORDS,
 };
 use himap_core::train::adam::{AdamConfig, AdamStep};
 use himap_core::train::backend::{
@@ -66,6 +69,9 @@ pub struct VulkanOptions {
     /// could sum them per workgroup first (`shaderSharedInt64Atomics`); the same bits either
     /// way (tests compare the two).
     pub global_atomics_only: bool,
+    /// The backward's structure where the device offers both; `None` (the default) times
+    /// both on the first steps and keeps the faster ([`VulkanBackend::backward_pass`]).
+    pub backward: Option<BackwardPass>,
 }
 
 /// The largest storage-buffer binding a group may use, and the name of the limit that sets it
@@ -143,12 +149,14 @@ pub struct VulkanBackend {
     max_binding: u64,
     model_words: Buffer,
     groups: PerGroup<GroupBuffers>,
-    /// Per-batch inputs and outputs (host-visible, grown on demand): rays (or query points),
-    /// per-item results, sampled pixels, the mapping window's words.
+    /// Per-batch inputs and outputs (host-visible, grown on demand): rays (or query points,
+    /// or a mapping step's pixel rays), per-item results of training steps and renders.
     input: Option<Buffer>,
     output: Option<Buffer>,
-    pixels: Option<Buffer>,
-    window: Option<Buffer>,
+    /// The host-visible buffers of the mapping steps, one per [`Gpu`] frame, and the frame
+    /// of the step queued behind the last one returned ([`Backend::map_step`]'s `next`).
+    maps: [MapFrame; FRAMES],
+    queued: Option<usize>,
     /// Per-sample records of the current batch (device-local, grown on demand).
     samples: Option<Buffer>,
     /// The image slots (device-local, allocated by [`VulkanBackend::with_images`]).
@@ -156,8 +164,9 @@ pub struct VulkanBackend {
     store: ImageStore,
     /// Staging for device-local buffers that are not host-visible.
     staging: Option<Buffer>,
-    /// The step's count of non-finite values (`loss_check_cs`, `adam_check_cs`; host-visible,
-    /// zeroed at the start of every step): non-zero rejects the step.
+    /// The status words (`gpu_abi::STATUS_WORDS`; host-visible): the step's count of
+    /// non-finite values (`loss_check_cs`, `adam_check_cs`; zeroed at the start of every
+    /// step, non-zero rejects it) and the count of steps taken (Adam's `t`).
     status: Buffer,
     pipelines: Pipelines,
     _module: ShaderModule,
@@ -169,6 +178,123 @@ pub struct VulkanBackend {
     /// Loop iterations one invocation completes on this device (`None`: at least
     /// [`CANARY_MAX`]), measured at construction by [`measure_loop_budget`].
     loop_budget: Option<u32>,
+    /// The backward's structure: chosen, or being measured.
+    backward: BackwardChoice,
+}
+
+/// Measured backward passes kept per structure before the faster is chosen (after one
+/// warm-up step of each).
+const BACKWARD_TRIALS: u32 = 3;
+
+/// How the steps' backward pass is chosen on this device: fixed where only one structure
+/// exists (or the options fix it), otherwise the first steps alternate between the two,
+/// their device times taken from the frame's timestamp pair, and the faster one (the least
+/// time of [`BACKWARD_TRIALS`] each) is kept. Both give the same bits.
+#[derive(Clone, Copy, Debug)]
+struct BackwardChoice {
+    chosen: Option<BackwardPass>,
+    /// Per structure ([`BackwardPass::ALL`] order): steps recorded, least time (ns) of the
+    /// measured ones, and how many were measured.
+    recorded: [u32; 2],
+    best_ns: [f64; 2],
+    measured: [u32; 2],
+}
+
+impl BackwardChoice {
+    fn new(chosen: Option<BackwardPass>) -> Self {
+        Self {
+            chosen,
+            recorded: [0; 2],
+            best_ns: [f64::INFINITY; 2],
+            measured: [0; 2],
+        }
+    }
+
+    /// The structure of the next step recorded.
+    fn next(&mut self) -> BackwardPass {
+        if let Some(c) = self.chosen {
+            return c;
+        }
+        let i = ((self.recorded[0] + self.recorded[1]) % 2) as usize;
+        self.recorded[i] += 1;
+        BackwardPass::ALL[i]
+    }
+
+    /// A finished step's backward time (`None`: not timed); chooses once both have
+    /// [`BACKWARD_TRIALS`] measurements after their warm-up step.
+    fn note(&mut self, used: BackwardPass, ns: Option<f64>) {
+        if self.chosen.is_some() {
+            return;
+        }
+        let i = used as usize;
+        // (a step without a backward, an empty batch, has no time)
+        let Some(ns) = ns else {
+            return;
+        };
+        // the first of each structure warms up (pipeline creation, caches)
+        if self.recorded[i] > 1 || self.measured[i] > 0 {
+            self.measured[i] += 1;
+            self.best_ns[i] = self.best_ns[i].min(ns);
+        }
+        if self.measured.iter().all(|&m| m >= BACKWARD_TRIALS) {
+            let faster = if self.best_ns[1] <= self.best_ns[0] {
+                1
+            } else {
+                0
+            };
+            self.chosen = Some(BackwardPass::ALL[faster]);
+        }
+    }
+}
+
+/// The host-visible buffers of one mapping step: the window's words, the pixels, the
+/// per-pixel results and the status words copied at the step's end; and a hash of the batch
+/// it holds (a queued step is checked against the batch the caller then brings).
+#[derive(Default)]
+struct MapFrame {
+    window: Option<Buffer>,
+    pixels: Option<Buffer>,
+    results: Option<Buffer>,
+    status: Option<Buffer>,
+    batch: u64,
+    /// The backward structure the step used (its time goes to [`BackwardChoice::note`]).
+    backward: Option<BackwardPass>,
+}
+
+/// FNV-1a over what decides a mapping step: pixels, poses, slots, loss words, rates.
+fn batch_hash(batch: &MapBatch<'_>) -> u64 {
+    let mut h = 0xcbf2_9ce4_8422_2325u64;
+    let mut add = |w: u32| {
+        h ^= u64::from(w);
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    };
+    for p in batch.pixels {
+        add(p.frame);
+        add(p.u);
+        add(p.v);
+    }
+    for (p, s) in batch.poses.iter().zip(batch.slots) {
+        p.m.iter().flatten().for_each(|x| add(x.to_bits()));
+        add(*s);
+    }
+    add(batch.loss.seed);
+    add(batch.loss.lambda_color.to_bits());
+    add(batch.loss.lambda_warp.to_bits());
+    add(batch.loss.color_to_geometry as u32);
+    add(batch.loss.lambda_depth_prior.to_bits());
+    if let Some(lr) = batch.lr {
+        lr.iter().for_each(|x| add(x.to_bits()));
+    }
+    h
+}
+
+/// The status words of a finished step: whether its checks rejected it, and the device's
+/// count of steps taken.
+fn read_status(status: &Buffer) -> (bool, u32) {
+    let mut b = [0u8; 4 * STATUS_WORDS];
+    status.read_mapped(0, &mut b);
+    let word = |i: usize| u32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]]);
+    (word(STATUS_REJECTED) != 0, word(STATUS_STEPS))
 }
 
 /// The longest loop the canary tries (a device that completes it has no budget that matters).
@@ -296,6 +422,7 @@ impl VulkanBackend {
         let mut gpu = Gpu::new(&device)?;
         let module = ShaderModule::new(&device, &crate::shader_words())?;
         let pipelines = Pipelines::new(&device, &module, !options.global_atomics_only)?;
+        let workgroup_sums_available = pipelines.sample_backward_wg.is_some();
         let loop_budget = measure_loop_budget(&device, &mut gpu, &pipelines)?;
         let w = model_words(&layout, [&part_lens[0], &part_lens[1]]);
         let mut staging = None;
@@ -333,11 +460,15 @@ impl VulkanBackend {
             groups,
             input: None,
             output: None,
-            pixels: None,
-            window: None,
+            maps: Default::default(),
+            queued: None,
             samples: None,
             images: Buffer::new(&device, 16, Memory::Device, "the image slots")?,
-            status: Buffer::new(&device, 16, Memory::Host, "the step's finiteness status")?,
+            status: {
+                let mut b = Buffer::new(&device, 16, Memory::Host, "the step's status words")?;
+                b.write_mapped(0, &[0u8; 16]);
+                b
+            },
             store: ImageStore::default(),
             staging,
             pipelines,
@@ -346,6 +477,16 @@ impl VulkanBackend {
             host_times: Default::default(),
             profiling: false,
             loop_budget,
+            backward: BackwardChoice::new(
+                if options.global_atomics_only || !workgroup_sums_available {
+                    Some(BackwardPass::GlobalAtomics)
+                } else if info.timestamp_valid_bits == 0 || info.timestamp_period <= 0.0 {
+                    // nothing to time them with: the structure built for real GPUs
+                    Some(options.backward.unwrap_or(BackwardPass::WorkgroupSums))
+                } else {
+                    options.backward
+                },
+            ),
         })
     }
 
@@ -356,6 +497,7 @@ impl VulkanBackend {
 
     /// Overwrites a group's Adam moments (a resumed run).
     pub fn write_adam(&mut self, group: Group, m: &[f32], v: &[f32]) -> Result<(), VulkanError> {
+        self.settle()?;
         let g = &mut self.groups[group as usize];
         check_len(group.name(), m.len(), g.len)?;
         check_len(group.name(), v.len(), g.len)?;
@@ -378,8 +520,22 @@ impl VulkanBackend {
     }
 
     /// Sets the count of Adam steps taken (a resumed run).
-    pub fn set_steps(&mut self, t: u32) {
+    pub fn set_steps(&mut self, t: u32) -> Result<(), VulkanError> {
+        self.settle()?;
+        let mut w = [0u8; 4];
+        w.copy_from_slice(&t.to_le_bytes());
+        self.status.write_mapped((STATUS_STEPS * 4) as u64, &w);
         self.t = t;
+        Ok(())
+    }
+
+    /// Waits for a queued mapping step (its results stay in its frame for the `map_step`
+    /// that brings its batch), so that the other calls see the device at rest.
+    fn settle(&mut self) -> Result<(), VulkanError> {
+        if self.queued.is_some() {
+            self.gpu.wait_all()?;
+        }
+        Ok(())
     }
 
     /// Signed distances at world points (`sdf_at`, as the CPU backends' `sdf`).
@@ -424,6 +580,7 @@ impl VulkanBackend {
         if n == 0 {
             return Ok(());
         }
+        self.settle()?;
         let per = if color { 3 } else { 1 };
         self.check_binding("the query points", n as u64 * 12)?;
         self.check_binding("the query results", (n * per) as u64 * 4)?;
@@ -516,6 +673,15 @@ impl VulkanBackend {
     /// workgroup memory before the global atomics (`sample_backward_wg_cs`).
     pub fn workgroup_sums(&self) -> bool {
         self.pipelines.sample_backward_wg.is_some()
+    }
+
+    /// The backward's structure on this device: the one chosen (`None` while the first
+    /// steps still time both), and the least device time (ms) measured for each
+    /// ([`BackwardPass::ALL`] order; `None` where not measured).
+    pub fn backward_pass(&self) -> (Option<BackwardPass>, [Option<f64>; 2]) {
+        let b = &self.backward;
+        let ms = |i: usize| (b.measured[i] > 0).then(|| b.best_ns[i] * 1e-6);
+        (b.chosen, [ms(0), ms(1)])
     }
 
     /// The loop iterations one invocation completes on this device, measured at start by the
@@ -625,8 +791,13 @@ impl VulkanBackend {
     }
 
     /// Writes a mapping batch's window (intrinsics, poses, slots, loss settings as words) and
-    /// pixels, and sizes the buffers of its pixel rays and results.
-    fn stage_window(&mut self, batch: &MapBatch<'_>, slots: &[u32]) -> Result<(), VulkanError> {
+    /// pixels into frame `f`'s buffers, and sizes the buffers of its pixel rays and results.
+    fn stage_window(
+        &mut self,
+        f: usize,
+        batch: &MapBatch<'_>,
+        slots: &[u32],
+    ) -> Result<(), VulkanError> {
         let n = batch.pixels.len();
         let frames = batch.poses.len();
         let mut w = vec![0u32; words::WINDOW];
@@ -634,7 +805,8 @@ impl VulkanBackend {
         let (k, poses, loss) = (&batch.k, batch.poses, &batch.loss);
         words::window_to_words(k, size, &slots[..frames], poses, loss, &mut w);
         let bytes = (words::WINDOW * 4) as u64;
-        ensure(&self.gpu, &mut self.window, bytes, "the mapping window")?
+        let m = &mut self.maps[f];
+        ensure(&self.gpu, &mut m.window, bytes, "the mapping window")?
             .write_mapped(0, &u32_bytes(&w));
         self.check_binding("the pixels of a batch", (n * 12) as u64)?;
         let flat: Vec<u32> = batch
@@ -642,14 +814,23 @@ impl VulkanBackend {
             .iter()
             .flat_map(|p| [p.frame, p.u, p.v])
             .collect();
-        ensure(&self.gpu, &mut self.pixels, (n * 12) as u64, "pixels")?
+        let m = &mut self.maps[f];
+        ensure(&self.gpu, &mut m.pixels, (n * 12) as u64, "pixels")?
             .write_mapped(0, &u32_bytes(&flat));
+        let result_bytes = (n * PIXEL_RESULT_FLOATS * 4) as u64;
+        self.check_binding("the pixel results of a batch", result_bytes)?;
+        let m = &mut self.maps[f];
+        ensure(&self.gpu, &mut m.results, result_bytes, "pixel results")?;
+        ensure(
+            &self.gpu,
+            &mut m.status,
+            16,
+            "a mapping step's status words",
+        )?;
+        m.batch = batch_hash(batch);
         let ray_bytes = (n * RAY_FLOATS * 4) as u64;
         self.check_binding("the rays of a batch", ray_bytes)?;
         ensure(&self.gpu, &mut self.input, ray_bytes, "pixel rays")?;
-        let result_bytes = (n * PIXEL_RESULT_FLOATS * 4) as u64;
-        self.check_binding("the pixel results of a batch", result_bytes)?;
-        ensure(&self.gpu, &mut self.output, result_bytes, "pixel results")?;
         Ok(())
     }
 
@@ -660,31 +841,128 @@ impl VulkanBackend {
         }
     }
 
-    /// After a step's submission: when its checks counted a non-finite value, Adam did
-    /// nothing, so the step count goes back and `stats` says the step was rejected.
-    fn finish_step(&mut self, mut stats: StepStats) -> StepStats {
-        let mut b = [0u8; 4];
-        self.status.read_mapped(0, &mut b);
-        if u32::from_le_bytes(b) != 0 {
-            self.t -= 1;
-            stats.rejected = true;
-            stats.t = self.t;
-        }
+    /// After a step: its status words (`status`: the step's own copy, or the shared buffer
+    /// after a waited-for submission). When its checks counted a non-finite value Adam did
+    /// nothing and `stats` says the step was rejected; the step count is the device's.
+    fn finish_step(&mut self, mut stats: StepStats, (rejected, t): (bool, u32)) -> StepStats {
+        stats.rejected |= rejected;
+        self.t = t;
+        stats.t = t;
         stats
     }
 
-    fn adam_steps(&mut self) -> [AdamStep; NUM_GROUPS] {
-        self.t += 1;
-        core::array::from_fn(|g| AdamStep::new(&self.adam[g], self.t))
+    /// The Adam scalars of the next step with the rates of `adam` (the shaders take the bias
+    /// corrections from the device's step count, which the host's `t` mirrors between steps).
+    fn adam_steps(&self, adam: &PerGroup<AdamConfig>) -> [AdamStep; NUM_GROUPS] {
+        core::array::from_fn(|g| AdamStep::new(&adam[g], self.t.wrapping_add(1)))
     }
 }
 
 impl VulkanBackend {
+    /// Stages `batch` in frame `f`'s buffers and submits its mapping step there without
+    /// waiting (waited for and timed instead when profiling). Refuses a window the device's
+    /// loop budget cannot run.
+    fn submit_map(&mut self, f: usize, batch: &MapBatch<'_>) -> Result<(), VulkanError> {
+        if let Some(budget) = self.loop_budget {
+            let frames = batch.poses.len() as u32;
+            let needed = himap_core::gpu_abi::pixel_train_loop_bound(frames);
+            if needed > budget {
+                return Err(VulkanError::LoopBudget {
+                    what: format!("the warping pass over a {frames}-frame mapping window"),
+                    needed,
+                    budget,
+                });
+            }
+        }
+        let slots = window_slots(batch, &self.store)?;
+        let adam = batch.adam(&self.adam)?;
+        let n = batch.pixels.len();
+        // the frame's buffers are rewritten: its previous step must be done
+        self.gpu.wait(f)?;
+        let t0 = std::time::Instant::now();
+        self.stage_window(f, batch, &slots)?;
+        let records = self.stage_samples(n)?;
+        self.host_time("upload (host)", t0);
+        let steps = self.adam_steps(&adam);
+        let seed = batch.loss.seed;
+        let timed = self.profiling;
+        let backward = self.backward.next();
+        self.maps[f].backward = Some(backward);
+        let Self {
+            gpu,
+            groups,
+            model_words,
+            input,
+            samples,
+            maps,
+            images,
+            pipelines,
+            max_groups,
+            status,
+            ..
+        } = self;
+        let m = &maps[f];
+        let (Some(input), Some(samples), Some(pixels), Some(window), Some(output), Some(copy)) = (
+            input.as_ref(),
+            samples.as_ref(),
+            m.pixels.as_ref(),
+            m.window.as_ref(),
+            m.results.as_ref(),
+            m.status.as_ref(),
+        ) else {
+            return Err(VulkanError::Unsupported("buffer allocation"));
+        };
+        let images: &Buffer = images;
+        let status: &Buffer = status;
+        let passes = Passes {
+            pipelines,
+            groups,
+            model_words,
+            rays: input,
+            samples,
+            status,
+            records,
+            max_groups: *max_groups,
+            backward,
+        };
+        gpu.submit_on(f, timed, |r| {
+            passes.zero_grads(r);
+            if n > 0 {
+                let pipeline = &pipelines.pixel_rays;
+                let set = r.bind(pipeline, &[window, pixels, images, input])?;
+                dispatch_items(r, pipeline, &set, n, passes.max_groups, range_push);
+                r.barrier();
+                r.mark("pixel rays");
+                passes.sample_forward(r, seed, true)?;
+                let pipeline = &pipelines.pixel_train;
+                let set = passes.bind_composite(r, pipeline, &[window, pixels, images], output)?;
+                // the planarity triplets are cut by the whole batch's size
+                let push = |first, count| batch_push(first, count, n as u32);
+                dispatch_items(r, pipeline, &set, n, passes.max_groups, push);
+                r.barrier();
+                r.mark("composite and pixel losses (per pixel)");
+                passes.sample_backward(r)?;
+            }
+            passes.checked_adam(
+                r,
+                &steps,
+                output,
+                n,
+                PIXEL_RESULT_FLOATS,
+                PIXEL_RESULT_LOSSES,
+            )?;
+            // the step's own copy of the status words: the next queued step zeroes them
+            r.copy(status, 0, copy, 0, (4 * STATUS_WORDS) as u64);
+            Ok(())
+        })
+    }
+
     /// Splits `self` for recording a ray batch (train or render): the device, the passes
     /// over the staged rays and sample records, and the results buffer.
     fn ray_passes(
         &mut self,
         records: usize,
+        backward: BackwardPass,
     ) -> Result<(&mut Gpu, Passes<'_>, &Buffer), VulkanError> {
         let (Some(input), Some(output), Some(samples)) = (
             self.input.as_ref(),
@@ -702,6 +980,7 @@ impl VulkanBackend {
             status: &self.status,
             records,
             max_groups: self.max_groups,
+            backward,
         };
         Ok((&mut self.gpu, passes, output))
     }
@@ -725,9 +1004,11 @@ impl Backend for VulkanBackend {
         results: &mut [RayResult],
     ) -> Result<StepStats, VulkanError> {
         check_len("results", results.len(), rays.len())?;
+        self.settle()?;
         let records = self.stage_rays(rays)?;
-        let steps = self.adam_steps();
+        let steps = self.adam_steps(&self.adam);
         let n = rays.len();
+        let backward = self.backward.next();
         let train_push = |first: u32, count: u32| {
             push_bytes(TrainPush {
                 n: count,
@@ -740,7 +1021,7 @@ impl Backend for VulkanBackend {
                 _pad: 0,
             })
         };
-        let (gpu, passes, output) = self.ray_passes(records)?;
+        let (gpu, passes, output) = self.ray_passes(records, backward)?;
         let pipelines = passes.pipelines;
         gpu.submit(|r| {
             passes.zero_grads(r);
@@ -755,9 +1036,12 @@ impl Backend for VulkanBackend {
             }
             passes.checked_adam(r, &steps, output, n, RESULT_FLOATS, RESULT_LOSS)
         })?;
+        let ns = self.gpu.stamp_ns(0)?;
+        self.backward.note(backward, ns);
         self.read_results(results);
         let stats = summarize(results, self.t);
-        Ok(self.finish_step(stats))
+        let status = read_status(&self.status);
+        Ok(self.finish_step(stats, status))
     }
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), VulkanError> {
@@ -765,9 +1049,10 @@ impl Backend for VulkanBackend {
         if rays.is_empty() {
             return Ok(());
         }
+        self.settle()?;
         let records = self.stage_rays(rays)?;
         let n = rays.len();
-        let (gpu, passes, output) = self.ray_passes(records)?;
+        let (gpu, passes, output) = self.ray_passes(records, BackwardPass::GlobalAtomics)?;
         let (pipelines, groups, model_words, input, samples) = (
             passes.pipelines,
             passes.groups,
@@ -797,6 +1082,7 @@ impl Backend for VulkanBackend {
     }
 
     fn read_params(&mut self, group: Group, out: &mut [f32]) -> Result<(), VulkanError> {
+        self.settle()?;
         let g = &self.groups[group as usize];
         check_len(group.name(), out.len(), g.len)?;
         for p in &g.parts {
@@ -807,6 +1093,7 @@ impl Backend for VulkanBackend {
     }
 
     fn read_adam(&mut self, group: Group, m: &mut [f32], v: &mut [f32]) -> Result<(), VulkanError> {
+        self.settle()?;
         let g = &self.groups[group as usize];
         check_len(group.name(), m.len(), g.len)?;
         check_len(group.name(), v.len(), g.len)?;
@@ -819,6 +1106,7 @@ impl Backend for VulkanBackend {
     }
 
     fn read_grads(&mut self, group: Group, out: &mut [i64]) -> Result<(), VulkanError> {
+        self.settle()?;
         let g = &self.groups[group as usize];
         check_len(group.name(), out.len(), g.len)?;
         for p in &g.parts {
@@ -840,6 +1128,7 @@ impl Backend for VulkanBackend {
         data: &[f32],
         reset_adam: bool,
     ) -> Result<(), VulkanError> {
+        self.settle()?;
         let g = &mut self.groups[group as usize];
         check_len(group.name(), data.len(), g.len)?;
         for p in g.parts.iter_mut() {
@@ -868,6 +1157,7 @@ impl Backend for VulkanBackend {
     }
 
     fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), VulkanError> {
+        self.settle()?;
         let words = self.store.slot_range(slot, rgba.len())?;
         upload_at(
             &mut self.gpu,
@@ -882,100 +1172,63 @@ impl Backend for VulkanBackend {
         &mut self,
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
+        next: Option<&MapBatch<'_>>,
     ) -> Result<StepStats, VulkanError> {
         #[cfg(feature = "fault-injection")]
         crate::fault::map_step()?;
         check_len("results", results.len(), batch.pixels.len())?;
-        if let Some(budget) = self.loop_budget {
-            let frames = batch.poses.len() as u32;
-            let needed = himap_core::gpu_abi::pixel_train_loop_bound(frames);
-            if needed > budget {
-                return Err(VulkanError::LoopBudget {
-                    what: format!("the warping pass over a {frames}-frame mapping window"),
-                    needed,
-                    budget,
-                });
+        let f = match self.queued.take() {
+            Some(f) => {
+                if self.maps[f].batch != batch_hash(batch) {
+                    // the queued step has run on the parameters already: nothing to undo
+                    self.gpu.wait_all()?;
+                    return Err(VulkanError::Unsupported(
+                        "map_step: the batch differs from the one the previous call queued as next",
+                    ));
+                }
+                f
             }
+            None => {
+                let f = (0..FRAMES).find(|&f| !self.gpu.pending(f)).unwrap_or(0);
+                self.submit_map(f, batch)?;
+                f
+            }
+        };
+        // Queue the next step behind this one (not when timing: timed submissions wait).
+        if let Some(nb) = next.filter(|_| !self.profiling) {
+            let g = (f + 1) % FRAMES;
+            self.submit_map(g, nb)?;
+            self.queued = Some(g);
         }
-        let slots = window_slots(batch, &self.store)?;
-        let n = batch.pixels.len();
         let t0 = std::time::Instant::now();
-        self.stage_window(batch, &slots)?;
-        let records = self.stage_samples(n)?;
-        self.host_time("upload (host)", t0);
-        let steps = self.adam_steps();
-        let seed = batch.loss.seed;
-        let Self {
-            gpu,
-            groups,
-            model_words,
-            input,
-            output,
-            samples,
-            pixels,
-            window,
-            images,
-            pipelines,
-            max_groups,
-            status,
-            ..
-        } = self;
-        let (Some(input), Some(output), Some(samples), Some(pixels), Some(window)) = (
-            input.as_ref(),
-            output.as_ref(),
-            samples.as_ref(),
-            pixels.as_ref(),
-            window.as_ref(),
-        ) else {
+        self.gpu.wait(f)?;
+        if let Some(used) = self.maps[f].backward {
+            let ns = self.gpu.stamp_ns(f)?;
+            self.backward.note(used, ns);
+        }
+        let n = batch.pixels.len();
+        let m = &self.maps[f];
+        let (Some(out), Some(status)) = (m.results.as_ref(), m.status.as_ref()) else {
             return Err(VulkanError::Unsupported("buffer allocation"));
         };
-        let images: &Buffer = images;
-        let passes = Passes {
-            pipelines,
-            groups,
-            model_words,
-            rays: input,
-            samples,
-            status,
-            records,
-            max_groups: *max_groups,
-        };
-        gpu.submit(|r| {
-            passes.zero_grads(r);
-            if n > 0 {
-                let pipeline = &pipelines.pixel_rays;
-                let set = r.bind(pipeline, &[window, pixels, images, input])?;
-                dispatch_items(r, pipeline, &set, n, passes.max_groups, range_push);
-                r.barrier();
-                r.mark("pixel rays");
-                passes.sample_forward(r, seed, true)?;
-                let pipeline = &pipelines.pixel_train;
-                let set = passes.bind_composite(r, pipeline, &[window, pixels, images], output)?;
-                // the planarity triplets are cut by the whole batch's size
-                let push = |first, count| batch_push(first, count, n as u32);
-                dispatch_items(r, pipeline, &set, n, passes.max_groups, push);
-                r.barrier();
-                r.mark("composite and pixel losses (per pixel)");
-                passes.sample_backward(r)?;
-            }
-            passes.checked_adam(
-                r,
-                &steps,
-                output,
-                n,
-                PIXEL_RESULT_FLOATS,
-                PIXEL_RESULT_LOSSES,
-            )
-        })?;
-        let f = self.read_floats(n * PIXEL_RESULT_FLOATS);
+        let mut bytes = vec![0u8; n * PIXEL_RESULT_FLOATS * 4];
+        out.read_mapped(0, &mut bytes);
+        let status = read_status(status);
+        self.host_time("read back (host)", t0);
+        let f32s: Vec<f32> = bytes
+            .as_chunks::<4>()
+            .0
+            .iter()
+            .map(|b| f32::from_le_bytes(*b))
+            .collect();
         for (r, v) in results
             .iter_mut()
-            .zip(f.as_chunks::<PIXEL_RESULT_FLOATS>().0)
+            .zip(f32s.as_chunks::<PIXEL_RESULT_FLOATS>().0)
         {
             *r = pixel_result_from_record(v);
         }
         let stats = summarize_pixels(results, self.t);
-        Ok(self.finish_step(stats))
+        Ok(self.finish_step(stats, status))
     }
 
     fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), VulkanError> {
@@ -987,6 +1240,7 @@ impl Backend for VulkanBackend {
     }
 
     fn set_min_transmittance(&mut self, t: f32) -> Result<(), VulkanError> {
+        self.settle()?;
         let mut layout = self.layout;
         layout.set_min_transmittance(t)?;
         let parts =

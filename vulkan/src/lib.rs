@@ -24,6 +24,7 @@ mod raw;
 pub use backend::{PassTime, VulkanBackend, VulkanOptions};
 pub use device::{describe_devices, list_devices, DeviceInfo, DeviceKind, DEVICE_ENV};
 pub use error::VulkanError;
+pub use passes::BackwardPass;
 
 /// The post-processed SPIR-V module with every entry point (little-endian words; use
 /// `ash::util::read_spv` to get aligned `u32`s). Committed: `himap-shader-build` writes it

@@ -10,7 +10,9 @@ use crate::error::VulkanError;
 use crate::raw::{Buffer, Device, Pipeline, Recorder, Set, ShaderModule};
 use crate::{entry, WORKGROUP_SIZE};
 use himap_core::field::model::{Group, PerGroup, NUM_GROUPS};
-use himap_core::gpu_abi::{AdamPush, LossCheckPush, PushWords, RangePush, SamplePush};
+use himap_core::gpu_abi::{
+    AdamPush, LossCheckPush, PushWords, RangePush, SamplePush, STATUS_REJECTED,
+};
 use himap_core::train::adam::AdamStep;
 
 pub(crate) struct Pipelines {
@@ -27,6 +29,7 @@ pub(crate) struct Pipelines {
     pub(crate) adam: Pipeline,
     pub(crate) loss_check: Pipeline,
     pub(crate) adam_check: Pipeline,
+    pub(crate) step_count: Pipeline,
     pub(crate) sdf: Pipeline,
     pub(crate) color: Pipeline,
 }
@@ -56,6 +59,7 @@ impl Pipelines {
             adam: p(&entry::ADAM)?,
             loss_check: p(&entry::LOSS_CHECK)?,
             adam_check: p(&entry::ADAM_CHECK)?,
+            step_count: p(&entry::STEP_COUNT)?,
             sdf: p(&entry::SDF_QUERY)?,
             color: p(&entry::COLOR_QUERY)?,
         })
@@ -126,6 +130,30 @@ pub(crate) fn batch_push(first: u32, count: u32, total: u32) -> [u8; 32] {
 
 /// What the passes of one submission share: pipelines, model buffers, and the batch's rays
 /// and sample records.
+/// The per-sample backward's structure (the same bits either way, tested): one global `i64`
+/// atomic per gradient contribution, or the decoders' weight contributions summed in
+/// workgroup memory first (`sample_backward_wg_cs`, devices with `shaderSharedInt64Atomics`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BackwardPass {
+    /// `sample_backward_cs`.
+    GlobalAtomics,
+    /// `sample_backward_wg_cs`.
+    WorkgroupSums,
+}
+
+impl BackwardPass {
+    /// Both, in index order.
+    pub const ALL: [BackwardPass; 2] = [BackwardPass::GlobalAtomics, BackwardPass::WorkgroupSums];
+
+    /// Short name for reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            BackwardPass::GlobalAtomics => "global atomics",
+            BackwardPass::WorkgroupSums => "workgroup sums",
+        }
+    }
+}
+
 pub(crate) struct Passes<'a> {
     pub(crate) pipelines: &'a Pipelines,
     pub(crate) groups: &'a PerGroup<GroupBuffers>,
@@ -137,6 +165,9 @@ pub(crate) struct Passes<'a> {
     /// Sample records of the batch (rays x samples per ray).
     pub(crate) records: usize,
     pub(crate) max_groups: u32,
+    /// The backward's structure (`WorkgroupSums` falls back to global atomics where the
+    /// device has no workgroup-sum pipeline).
+    pub(crate) backward: BackwardPass,
 }
 
 impl<'a> Passes<'a> {
@@ -162,7 +193,8 @@ impl<'a> Passes<'a> {
         for p in self.groups.iter().flat_map(|g| g.parts.iter()) {
             r.zero(&p.grad);
         }
-        r.zero(self.status);
+        // the rejection count only: the step count lives on (`gpu_abi::STATUS_WORDS`)
+        r.zero_range(self.status, (STATUS_REJECTED * 4) as u64, 4);
         r.barrier();
         r.mark("zero gradients");
     }
@@ -206,9 +238,9 @@ impl<'a> Passes<'a> {
 
     /// Pass 3: `sample_backward_cs` over every sample record.
     pub(crate) fn sample_backward(&self, r: &mut Recorder<'a>) -> Result<(), VulkanError> {
-        let pipeline = match &self.pipelines.sample_backward_wg {
-            Some(p) => p,
-            None => &self.pipelines.sample_backward,
+        let pipeline = match (self.backward, &self.pipelines.sample_backward_wg) {
+            (BackwardPass::WorkgroupSums, Some(p)) => p,
+            _ => &self.pipelines.sample_backward,
         };
         let set = r.bind(
             pipeline,
@@ -220,8 +252,11 @@ impl<'a> Passes<'a> {
             ]
             .concat(),
         )?;
+        // the frame's timestamp pair times this pass (the backend's choice of structure)
+        r.stamp();
         dispatch_items(r, pipeline, &set, self.records, self.max_groups, range_push);
         r.barrier();
+        r.stamp();
         r.mark("backward (per sample)");
         Ok(())
     }
@@ -255,6 +290,11 @@ impl<'a> Passes<'a> {
         r.barrier();
         r.mark("finiteness checks");
         self.adam(r, steps, &self.pipelines.adam)?;
+        r.barrier();
+        let pipeline = &self.pipelines.step_count;
+        let set = r.bind(pipeline, &[self.status])?;
+        dispatch_items(r, pipeline, &set, 1, self.max_groups, range_push);
+        r.barrier();
         r.mark("Adam");
         Ok(())
     }

@@ -157,6 +157,18 @@ pub struct TrainPush {
     pub _pad: u32,
 }
 
+/// The status words of a training step, in one `u32` buffer: the finiteness checks' count of
+/// non-finite values ([`STATUS_REJECTED`], zeroed at the start of every step; non-zero: the
+/// step is rejected and Adam does nothing) and the count of steps taken ([`STATUS_STEPS`],
+/// kept on the device: Adam's bias corrections of a step are those of `count + 1`
+/// ([`crate::train::adam::AdamStep::at`]), and `step_count_cs` adds 1 after an accepted
+/// step). A step queued behind one whose checks are not yet known still gets the CPU's `t`.
+pub const STATUS_WORDS: usize = 2;
+/// See [`STATUS_WORDS`].
+pub const STATUS_REJECTED: usize = 0;
+/// See [`STATUS_WORDS`].
+pub const STATUS_STEPS: usize = 1;
+
 /// Push constants of the Adam passes: the item range and the group's
 /// [`crate::train::adam::AdamStep`].
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -166,7 +178,8 @@ pub struct AdamPush {
     pub n: u32,
     /// Index of the dispatch's first parameter in the group.
     pub first: u32,
-    /// The step's Adam scalars (learning rate, betas, epsilon, bias corrections).
+    /// The step's Adam scalars (learning rate, betas, epsilon; the shaders replace the bias
+    /// corrections by those of the device's step count, [`STATUS_WORDS`]).
     pub step: crate::train::adam::AdamStep,
 }
 
@@ -411,13 +424,15 @@ pub mod entry {
     /// results.
     pub const PIXEL_TRAIN: EntryPoint =
         EntryPoint::new("pixel_train_cs", 9, size_of::<RangePush>());
-    /// Parameters, both moments, gradient, status word.
+    /// Parameters, both moments, gradient, status words ([`STATUS_WORDS`]).
     pub const ADAM: EntryPoint = EntryPoint::new("adam_cs", 5, size_of::<AdamPush>());
     /// Counts non-finite losses: results, status word.
     pub const LOSS_CHECK: EntryPoint =
         EntryPoint::new("loss_check_cs", 2, size_of::<LossCheckPush>());
     /// Counts parameters whose Adam update would not be finite: as [`ADAM`].
     pub const ADAM_CHECK: EntryPoint = EntryPoint::new("adam_check_cs", 5, size_of::<AdamPush>());
+    /// Counts the step as taken unless a check counted a non-finite value: status words.
+    pub const STEP_COUNT: EntryPoint = EntryPoint::new("step_count_cs", 1, size_of::<RangePush>());
     /// Model words, [`PARAM_BINDINGS`], points, output.
     pub const SDF_QUERY: EntryPoint = EntryPoint::new(
         "sdf_query_cs",
@@ -432,7 +447,7 @@ pub mod entry {
     );
 
     /// All of them.
-    pub const ALL: [EntryPoint; 17] = [
+    pub const ALL: [EntryPoint; 18] = [
         SAMPLE_BACKWARD_WG,
         PROBE,
         LOOP_CANARY,
@@ -448,6 +463,7 @@ pub mod entry {
         ADAM,
         LOSS_CHECK,
         ADAM_CHECK,
+        STEP_COUNT,
         SDF_QUERY,
         COLOR_QUERY,
     ];

@@ -94,6 +94,20 @@ impl AdamStep {
             bias_correction2: 1.0 - math::pow_int(cfg.beta2, t),
         }
     }
+
+    /// The scalars of step `t` with this step's learning rate, betas and epsilon: the bias
+    /// corrections recomputed as in [`Self::new`]. The GPU derives each step's bias
+    /// corrections this way from its device-side count of accepted steps, so that a step
+    /// queued before the previous one's finiteness check is known still uses the CPU's `t`.
+    pub fn at(&self, t: u32) -> Self {
+        let cfg = AdamConfig {
+            lr: self.lr,
+            beta1: self.beta1,
+            beta2: self.beta2,
+            eps: self.eps,
+        };
+        Self::new(&cfg, t)
+    }
 }
 
 /// One Adam update of one parameter with gradient `grad` (PyTorch's `torch.optim.Adam` form,

@@ -82,10 +82,17 @@ pub trait Backend {
     /// ([`StepStats::rejected`]). `results[i]` receives pixel i's
     /// outputs; the returned loss is the sum of the pixels' colour and warp losses in pixel
     /// order.
+    ///
+    /// `next`, when given, is the batch of the caller's next call, which must be `map_step`
+    /// with that same batch: a backend may start it before returning (the Vulkan backend
+    /// queues it behind this step, so the device does not wait for the host between
+    /// iterations); others ignore it. A queued step changes the parameters even if the
+    /// caller then stops, so callers pass `next` only when the next call is certain.
     fn map_step(
         &mut self,
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
+        next: Option<&MapBatch<'_>>,
     ) -> Result<StepStats, Self::Error>;
     /// Changes a group's Adam learning rate (moments are kept).
     fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), Self::Error>;
@@ -151,6 +158,26 @@ pub struct MapBatch<'a> {
     pub pixels: &'a [PixelSample],
     /// Loss weights and switches.
     pub loss: MappingLoss,
+    /// The Adam learning rate of each group ([`crate::field::model::Group::ALL`] order) for
+    /// this step; `None` uses the backend's ([`Backend::set_adam_lr`]). The mapper decides
+    /// them when it prepares the batch, so a backend that starts a queued step early
+    /// ([`Backend::map_step`]'s `next`) trains it with the same rates as one that runs it
+    /// later.
+    pub lr: Option<[f32; crate::field::model::NUM_GROUPS]>,
+}
+
+impl MapBatch<'_> {
+    /// `adam` with this batch's learning rates ([`Self::lr`]; `adam` itself when `None`).
+    /// Errors: a rate that is not finite and `>= 0`.
+    pub fn adam(&self, adam: &PerGroup<AdamConfig>) -> Result<PerGroup<AdamConfig>, Error> {
+        let mut out = *adam;
+        if let Some(lr) = self.lr {
+            for (cfg, lr) in out.0.iter_mut().zip(lr) {
+                cfg.set_lr(lr)?;
+            }
+        }
+        Ok(out)
+    }
 }
 
 /// Validates a batch against the image store and returns the window's slot table.

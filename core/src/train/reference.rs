@@ -294,11 +294,19 @@ impl Backend for CpuBackend<'_> {
         &mut self,
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
+        _next: Option<&MapBatch<'_>>,
     ) -> Result<StepStats, Error> {
+        let adam = batch.adam(&self.adam)?;
+        let saved = core::mem::replace(&mut self.adam, adam);
         self.zero_grads();
-        let mut stats = self.accumulate_pixels(batch, results)?;
-        self.finish_step(&mut stats)?;
-        Ok(stats)
+        let stepped = self
+            .accumulate_pixels(batch, results)
+            .and_then(|mut stats| {
+                self.finish_step(&mut stats)?;
+                Ok(stats)
+            });
+        self.adam = saved;
+        stepped
     }
 
     fn set_adam_lr(&mut self, group: Group, lr: f32) -> Result<(), Error> {

@@ -33,7 +33,9 @@ where
         ctx,
     };
     let mcfg = cfg.mapper_config()?;
-    let mut px = vec![PixelSample::default(); mcfg.pixels as usize];
+    // two pixel batches: the next iteration's is drawn while the backend runs the current
+    // one (a GPU queues it; the map is the same bits either way)
+    let mut px = vec![PixelSample::default(); 2 * mcfg.pixels as usize];
     let mut res = vec![PixelResult::default(); mcfg.pixels as usize];
     let resumed = match &opts.resume {
         Some(path) => Some(checkpoint::load(

@@ -171,8 +171,11 @@ impl Buffer {
 
 impl Drop for Buffer {
     fn drop(&mut self) {
-        // SAFETY: no submission is pending (all are waited for), so the device no longer uses
-        // the buffer; unmapping happens implicitly with `vkFreeMemory`.
+        // A submission queued by `Gpu::submit_on` may still use the buffer: wait for the
+        // device first (buffers are freed rarely: a resize, the backend's end).
+        self.device.wait_idle();
+        // SAFETY: the device runs nothing, so it no longer uses the buffer; unmapping happens
+        // implicitly with `vkFreeMemory`.
         unsafe {
             self.device.device.destroy_buffer(self.buffer, None);
             self.device.device.free_memory(self.memory, None);

@@ -228,6 +228,13 @@ pub(crate) struct Device {
 }
 
 impl Device {
+    /// Waits until the device runs nothing (before a buffer that a queued submission may use
+    /// is freed).
+    pub fn wait_idle(&self) {
+        // SAFETY: waiting is always allowed; errors (a lost device) surface at the next call.
+        let _ = unsafe { self.device.device_wait_idle() };
+    }
+
     /// Creates the device with the features the shaders need (the caller checked
     /// `info.missing()` is empty).
     pub fn new(instance: Arc<Instance>, info: PhysicalInfo) -> Result<Arc<Self>, VulkanError> {
