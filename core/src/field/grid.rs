@@ -870,6 +870,9 @@ impl NarrowLanes {
     #[inline(always)]
     fn gather(layout: &GridLayout, params: &[f32], xn: [f32; 3]) -> Option<Self> {
         let (nl, nc) = kernel_dims(layout);
+        if nc == 2 {
+            return Self::gather_fixed::<2>(layout, params, xn);
+        }
         let mut g = NarrowLanes {
             v: [[0.0; LANES]; 18],
             f: [[0.0; LANES]; 3],
@@ -886,6 +889,33 @@ impl NarrowLanes {
                 for a in 0..3 {
                     g.f[a][lane] = cell.f[a];
                 }
+            }
+        }
+        Some(g)
+    }
+
+    /// [`Self::gather`] for `NC` channels per level (a row's channels move as one block).
+    #[inline(always)]
+    fn gather_fixed<const NC: usize>(
+        layout: &GridLayout,
+        params: &[f32],
+        xn: [f32; 3],
+    ) -> Option<Self> {
+        let (nl, _) = kernel_dims(layout);
+        let mut g = NarrowLanes {
+            v: [[0.0; LANES]; 18],
+            f: [[0.0; LANES]; 3],
+        };
+        for l in 0..nl.min(LANES / NC) {
+            let lv = &layout.level[l];
+            let cell = locate(xn, lv.res);
+            let r = vm_rows(params, &vm_corners(lv, NC, &cell), NC)?;
+            for (v, row) in g.v.iter_mut().zip(r.iter()) {
+                let dst: &mut [f32; NC] = v[l * NC..].first_chunk_mut()?;
+                *dst = *row.first_chunk::<NC>()?;
+            }
+            for (f, x) in g.f.iter_mut().zip(cell.f) {
+                *f[l * NC..].first_chunk_mut::<NC>()? = [x; NC];
             }
         }
         Some(g)
