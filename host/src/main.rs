@@ -678,7 +678,11 @@ fn eval(args: EvalArgs) -> anyhow::Result<()> {
     };
     let (culling, gt_culling) = (parse(&cull)?, parse(&gt_cull)?);
     let dataset = match config {
-        Some(p) => himap::config::Config::from_file(&p)?.dataset,
+        Some(p) => himap::dataset::DatasetConfig {
+            // the ground truth at the files' size, whatever size a configuration maps at
+            max_width: 0,
+            ..himap::config::Config::from_file(&p)?.dataset
+        },
         None => Default::default(),
     };
     let opts = EvalOptions {

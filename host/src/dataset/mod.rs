@@ -435,6 +435,10 @@ pub struct DatasetConfig {
     pub tum_max_dt: f64,
     /// TUM: undistort colour images when the camera has distortion coefficients.
     pub undistort: bool,
+    /// Widest image to map (pixels; 0, the default: the files' size): a wider sequence is
+    /// resized to this width, the height in proportion (rounded), unless a size is given
+    /// (`--resize`). For cameras whose frames are larger than mapping needs.
+    pub max_width: u32,
 }
 
 impl Default for DatasetConfig {
@@ -446,6 +450,7 @@ impl Default for DatasetConfig {
             depth_scale: None,
             tum_max_dt: 0.02,
             undistort: true,
+            max_width: 0,
         }
     }
 }
@@ -557,6 +562,40 @@ pub fn open(path: &Path, opts: &LoadOptions) -> Result<Box<dyn Dataset>, Dataset
 
 /// Opens the dataset at `path` with configuration overrides.
 pub fn open_with(
+    path: &Path,
+    opts: &LoadOptions,
+    cfg: &DatasetConfig,
+) -> Result<Box<dyn Dataset>, DatasetError> {
+    let ds = open_as(path, opts, cfg)?;
+    match max_width_size(ds.intrinsics(), opts, cfg) {
+        Some(size) => open_as(
+            path,
+            &LoadOptions {
+                resize: Some(size),
+                ..opts.clone()
+            },
+            cfg,
+        ),
+        None => Ok(ds),
+    }
+}
+
+/// The size [`DatasetConfig::max_width`] resizes a sequence of intrinsics `k` (as opened
+/// with `opts`) to, when it applies: no explicit resize and an image wider than the limit.
+pub fn max_width_size(
+    k: Intrinsics,
+    opts: &LoadOptions,
+    cfg: &DatasetConfig,
+) -> Option<(u32, u32)> {
+    if opts.resize.is_some() || cfg.max_width == 0 || k.width <= cfg.max_width {
+        return None;
+    }
+    let w = cfg.max_width;
+    let h = ((k.height as f64 * w as f64 / k.width as f64).round() as u32).max(1);
+    Some((w, h))
+}
+
+fn open_as(
     path: &Path,
     opts: &LoadOptions,
     cfg: &DatasetConfig,

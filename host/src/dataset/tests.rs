@@ -1245,3 +1245,59 @@ fn oversized_text_files_are_refused_before_reading() {
     let e = expect_err(open_default(dir.path()), "traj.txt", "byte limit");
     assert!(matches!(e, DatasetError::TooLarge { .. }));
 }
+
+#[test]
+fn max_width_resizes_wider_sequences_only() {
+    let cfg = |max_width| DatasetConfig {
+        max_width,
+        ..DatasetConfig::default()
+    };
+    let k = |width, height| Intrinsics {
+        width,
+        height,
+        fx: 600.0,
+        fy: 600.0,
+        cx: 599.5,
+        cy: 339.5,
+    };
+    let none = LoadOptions::default();
+    assert_eq!(
+        max_width_size(k(640, 480), &none, &cfg(320)),
+        Some((320, 240))
+    );
+    // Replica's 1200 x 680: the height in proportion, rounded
+    assert_eq!(
+        max_width_size(k(1200, 680), &none, &cfg(320)),
+        Some((320, 181))
+    );
+    assert_eq!(max_width_size(k(320, 240), &none, &cfg(320)), None);
+    assert_eq!(max_width_size(k(1200, 680), &none, &cfg(0)), None);
+    let given = LoadOptions {
+        resize: Some((600, 340)),
+        ..LoadOptions::default()
+    };
+    assert_eq!(max_width_size(k(1200, 680), &given, &cfg(320)), None);
+    // opened through the configuration: the 8 x 6 fixture at most 4 wide is 4 x 3, with the
+    // intrinsics and the images of an explicit resize to 4 x 3
+    let dir = replica_fixture(2);
+    let capped = open_with(dir.path(), &none, &cfg(4)).unwrap();
+    let explicit = open(
+        dir.path(),
+        &LoadOptions {
+            resize: Some((4, 3)),
+            ..LoadOptions::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(capped.intrinsics(), explicit.intrinsics());
+    assert_eq!(
+        (capped.intrinsics().width, capped.intrinsics().height),
+        (4, 3)
+    );
+    let (a, b) = (capped.frame(1).unwrap(), explicit.frame(1).unwrap());
+    assert_eq!(a.rgb.data, b.rgb.data);
+    assert_eq!(
+        open_with(dir.path(), &none, &cfg(8)).unwrap().intrinsics(),
+        fixture_camera()
+    );
+}

@@ -130,6 +130,14 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
         .with_context(|| format!("opening dataset {}", opts.dataset.display()))?;
     let k = ds.intrinsics();
     let n = ds.len();
+    let max_w = opts.config.dataset.max_width;
+    if opts.progress && opts.resize.is_none() && max_w > 0 && k.width == max_w {
+        println!(
+            "frames mapped at {}x{} (at most dataset.max_width = {max_w} wide; --resize WxH or \
+             dataset.max_width = 0 for another size)",
+            k.width, k.height
+        );
+    }
     if opts.preflight {
         let t0 = Instant::now();
         for i in 0..n {
