@@ -789,7 +789,11 @@ fn evaluate_mesh(
         n_samples: cfg.eval.mesh_samples,
         culling,
         gt_culling,
-        dataset: cfg.dataset.clone(),
+        // the ground truth at the files' size, as `himap eval` (whatever size was mapped)
+        dataset: crate::dataset::DatasetConfig {
+            max_width: 0,
+            ..cfg.dataset.clone()
+        },
         ..EvalOptions::default()
     };
     match crate::eval::eval_report(&surface.path, &opts.dataset, &eo) {
