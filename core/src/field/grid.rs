@@ -1867,6 +1867,9 @@ mod tests {
             (one_level(GridKind::Factorized, 7), 2),
             (one_level(GridKind::Factorized, 16), 3),
             (one_level(GridKind::Factorized, 32), 4),
+            // two levels of the appearance grids' widths
+            (levels(2, 16), 10),
+            (levels(2, 32), 11),
         ] {
             let params = random_params(&layout, seed);
             for trial in 0..400 {
