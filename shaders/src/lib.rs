@@ -1267,11 +1267,19 @@ pub fn adam_cs(
     if i >= params.len() || i >= m.len() || i >= v.len() || i >= grad.len() {
         return;
     }
+    let g = grad[i];
+    // No gradient and both moments +0: the update would write the same bits back (the
+    // checks passed, so the step size is finite and `param - step * 0 / eps` is `param`),
+    // as the CPU's skip of blocks no step reached. Skipping saves a large box's untouched
+    // parameters their reads and writes.
+    if g == 0 && m[i].to_bits() == 0 && v[i].to_bits() == 0 {
+        return;
+    }
     let s = pc.step.at(status[STATUS_STEPS].wrapping_add(1));
     let mut p = params[i];
     let mut mi = m[i];
     let mut vi = v[i];
-    adam::adam_update(&s, &mut p, &mut mi, &mut vi, fixed::from_fixed(grad[i]));
+    adam::adam_update(&s, &mut p, &mut mi, &mut vi, fixed::from_fixed(g));
     params[i] = p;
     m[i] = mi;
     v[i] = vi;
