@@ -529,13 +529,11 @@ impl VulkanBackend {
         Ok(())
     }
 
-    /// Waits for a queued mapping step (its results stay in its frame for the `map_step`
-    /// that brings its batch), so that the other calls see the device at rest.
+    /// Waits for every submitted step (a queued one's results stay in its frame for the
+    /// `map_step` that brings its batch; a step left pending by an error is waited for too),
+    /// so that the other calls see the device at rest.
     fn settle(&mut self) -> Result<(), VulkanError> {
-        if self.queued.is_some() {
-            self.gpu.wait_all()?;
-        }
-        Ok(())
+        self.gpu.wait_all()
     }
 
     /// Signed distances at world points (`sdf_at`, as the CPU backends' `sdf`).
