@@ -191,6 +191,18 @@ fn assert_state<B: Backend>(what: &str, reference: &Reference, b: &mut B) {
     }
 }
 
+/// Every group's parameters of `a` and `b` are the same bits (labels `"{what} {group}
+/// params"`).
+pub fn assert_same_params<A: Backend, B: Backend>(what: &str, a: &mut A, b: &mut B) {
+    for g in Group::ALL {
+        let len = a.layout().group_len(g);
+        let (mut p, mut q) = (vec![0.0f32; len], vec![0.0f32; len]);
+        a.read_params(g, &mut p).unwrap();
+        b.read_params(g, &mut q).unwrap();
+        assert_same_f32(&format!("{what} {} params", g.name()), &p, &q);
+    }
+}
+
 /// Renders without jitter equal the reference's in every render mode; the batch renders
 /// something and the ray that misses the box renders nothing.
 pub fn forward_rendering<C: Candidate>(c: &C) {

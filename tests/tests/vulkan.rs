@@ -9,7 +9,8 @@ use himap_core::field::model::{Group, RayResult};
 use himap_core::field::render::RenderMode;
 use himap_core::train::backend::{paper_adam, Backend, ImageStore};
 use himap_tests::conformance::{
-    assert_same_f32, loss_config, result_floats, same, setup, test_adam, Reference,
+    assert_same_f32, assert_same_params, loss_config, result_floats, same, setup, test_adam,
+    Reference,
 };
 use himap_tests::vulkan_or_skip;
 use himap_vulkan::{BackwardPass, VulkanBackend, VulkanError, VulkanOptions};
@@ -262,12 +263,9 @@ fn grids_split_across_two_bindings_match_cpu() {
             &result_floats(&rg),
         );
     }
+    assert_same_params("split", &mut cpu, &mut gpu);
     for g in Group::ALL {
         let len = data.layout.group_len(g);
-        let (mut c, mut q) = (vec![0.0f32; len], vec![0.0f32; len]);
-        cpu.read_params(g, &mut c).unwrap();
-        gpu.read_params(g, &mut q).unwrap();
-        assert_same_f32(&format!("split {} params", g.name()), &c, &q);
         let (mut gc, mut gg) = (vec![0i64; len], vec![0i64; len]);
         cpu.read_grads(g, &mut gc).unwrap();
         gpu.read_grads(g, &mut gg).unwrap();
@@ -318,13 +316,7 @@ fn the_backward_structure_is_chosen_by_timing_both() {
             &result_floats(&rg),
         );
     }
-    for g in Group::ALL {
-        let len = data.layout.group_len(g);
-        let (mut c, mut q) = (vec![0.0f32; len], vec![0.0f32; len]);
-        cpu.read_params(g, &mut c).unwrap();
-        gpu.read_params(g, &mut q).unwrap();
-        assert_same_f32(&format!("{} params", g.name()), &c, &q);
-    }
+    assert_same_params("chosen backward:", &mut cpu, &mut gpu);
     let (chosen, ms) = gpu.backward_pass();
     eprintln!("{}: backward {chosen:?}, least ms {ms:?}", gpu.name());
     let chosen = chosen.expect("chosen after 9 steps");
@@ -366,13 +358,7 @@ fn profiled_steps_name_every_pass_and_keep_the_bits() {
     }
     let wall_ms = t0.elapsed().as_secs_f64() * 1e3;
     assert_same_f32("results", &result_floats(&ra), &result_floats(&rb));
-    for g in Group::ALL {
-        let n = data.params[g as usize].len();
-        let (mut a, mut b) = (vec![0.0f32; n], vec![0.0f32; n]);
-        plain.read_params(g, &mut a).unwrap();
-        timed.read_params(g, &mut b).unwrap();
-        assert_same_f32(g.name(), &a, &b);
-    }
+    assert_same_params("profiled:", &mut plain, &mut timed);
     let prof = timed.profile();
     let names: Vec<&str> = prof.iter().map(|p| p.name).collect();
     let want_host = ["upload (host)", "read back (host)"];

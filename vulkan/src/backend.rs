@@ -194,10 +194,10 @@ const BACKWARD_TRIALS: u32 = 3;
 struct BackwardChoice {
     chosen: Option<BackwardPass>,
     /// Per structure ([`BackwardPass::ALL`] order): steps recorded, least time (ns) of the
-    /// measured ones, and how many were measured.
+    /// timed ones, and how many times were noted (the first is the warm-up).
     recorded: [u32; 2],
     best_ns: [f64; 2],
-    measured: [u32; 2],
+    noted: [u32; 2],
 }
 
 impl BackwardChoice {
@@ -206,7 +206,7 @@ impl BackwardChoice {
             chosen,
             recorded: [0; 2],
             best_ns: [f64::INFINITY; 2],
-            measured: [0; 2],
+            noted: [0; 2],
         }
     }
 
@@ -231,12 +231,12 @@ impl BackwardChoice {
         let Some(ns) = ns else {
             return;
         };
+        self.noted[i] += 1;
         // the first of each structure warms up (pipeline creation, caches)
-        if self.recorded[i] > 1 || self.measured[i] > 0 {
-            self.measured[i] += 1;
+        if self.noted[i] > 1 {
             self.best_ns[i] = self.best_ns[i].min(ns);
         }
-        if self.measured.iter().all(|&m| m >= BACKWARD_TRIALS) {
+        if self.noted.iter().all(|&m| m > BACKWARD_TRIALS) {
             let faster = if self.best_ns[1] <= self.best_ns[0] {
                 1
             } else {
@@ -286,6 +286,18 @@ fn batch_hash(batch: &MapBatch<'_>) -> u64 {
         lr.iter().for_each(|x| add(x.to_bits()));
     }
     h
+}
+
+/// The first `len` floats of a host-visible buffer.
+fn mapped_f32s(buf: &Buffer, len: usize) -> Vec<f32> {
+    let mut bytes = vec![0u8; len * 4];
+    buf.read_mapped(0, &mut bytes);
+    bytes
+        .as_chunks::<4>()
+        .0
+        .iter()
+        .map(|b| f32::from_le_bytes(*b))
+        .collect()
 }
 
 /// The status words of a finished step: whether its checks rejected it, and the device's
@@ -678,7 +690,7 @@ impl VulkanBackend {
     /// ([`BackwardPass::ALL`] order; `None` where not measured).
     pub fn backward_pass(&self) -> (Option<BackwardPass>, [Option<f64>; 2]) {
         let b = &self.backward;
-        let ms = |i: usize| (b.measured[i] > 0).then(|| b.best_ns[i] * 1e-6);
+        let ms = |i: usize| (b.noted[i] > 1).then(|| b.best_ns[i] * 1e-6);
         (b.chosen, [ms(0), ms(1)])
     }
 
@@ -775,17 +787,10 @@ impl VulkanBackend {
     }
 
     fn read_floats_untimed(&self, len: usize) -> Vec<f32> {
-        let Some(out) = &self.output else {
-            return vec![0.0; len];
-        };
-        let mut bytes = vec![0u8; len * 4];
-        out.read_mapped(0, &mut bytes);
-        bytes
-            .as_chunks::<4>()
-            .0
-            .iter()
-            .map(|b| f32::from_le_bytes(*b))
-            .collect()
+        match &self.output {
+            Some(out) => mapped_f32s(out, len),
+            None => vec![0.0; len],
+        }
     }
 
     /// Writes a mapping batch's window (intrinsics, poses, slots, loss settings as words) and
@@ -1209,16 +1214,9 @@ impl Backend for VulkanBackend {
         let (Some(out), Some(status)) = (m.results.as_ref(), m.status.as_ref()) else {
             return Err(VulkanError::Unsupported("buffer allocation"));
         };
-        let mut bytes = vec![0u8; n * PIXEL_RESULT_FLOATS * 4];
-        out.read_mapped(0, &mut bytes);
+        let f32s = mapped_f32s(out, n * PIXEL_RESULT_FLOATS);
         let status = read_status(status);
         self.host_time("read back (host)", t0);
-        let f32s: Vec<f32> = bytes
-            .as_chunks::<4>()
-            .0
-            .iter()
-            .map(|b| f32::from_le_bytes(*b))
-            .collect();
         for (r, v) in results
             .iter_mut()
             .zip(f32s.as_chunks::<PIXEL_RESULT_FLOATS>().0)
