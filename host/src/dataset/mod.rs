@@ -13,8 +13,8 @@
 //! the loaders never panic on bad input.
 //!
 //! Image processing order for every frame: decode at the native size (checked against the
-//! camera), undistort the colour image (TUM, when enabled), resize (bilinear colour, nearest
-//! depth), then crop `crop_edge` pixels from every border. The frame's intrinsics are
+//! camera), undistort the colour image (when the camera has distortion and it is enabled),
+//! resize (bilinear colour, nearest depth), then crop `crop_edge` pixels from every border. The frame's intrinsics are
 //! `native.resized(w, h).cropped(edge)` accordingly.
 
 use std::path::{Path, PathBuf};
@@ -333,7 +333,9 @@ pub struct CameraConfig {
     pub fy: f32,
     pub cx: f32,
     pub cy: f32,
-    /// k1 k2 p1 p2 k3 of the colour camera (TUM undistortion); `None` = no distortion.
+    /// k1 k2 p1 p2 k3 of the colour camera (OpenCV model); `None` = no distortion. Colour
+    /// images are undistorted onto the same pinhole camera when [`DatasetConfig::undistort`]
+    /// is set, in both layouts.
     #[serde(default)]
     pub distortion: Option<[f32; 5]>,
 }
@@ -433,7 +435,8 @@ pub struct DatasetConfig {
     pub depth_scale: Option<f32>,
     /// TUM: largest timestamp difference (s) accepted when associating colour, depth and pose.
     pub tum_max_dt: f64,
-    /// TUM: undistort colour images when the camera has distortion coefficients.
+    /// Undistort colour images when the camera has distortion coefficients (TUM's freiburg
+    /// cameras, or a `[dataset.camera]` with `distortion`, in either layout).
     pub undistort: bool,
     /// Widest image to map (pixels; 0, the default: the files' size): a wider sequence is
     /// resized to this width, the height in proportion (rounded), unless a size is given

@@ -11,7 +11,8 @@
 //! ([`CameraConfig::REPLICA`], depth scale 6553.5). Depth scale: [`DatasetConfig::depth_scale`],
 //! else `cam_params.json`'s `scale`, else 6553.5 when there is no `cam_params.json`. A
 //! `cam_params.json` without `scale` is an error when depth is loaded. A sequence without any
-//! depth image has no depth (`has_depth() == false`).
+//! depth image has no depth (`has_depth() == false`). A configured camera with `distortion`
+//! has its colour images undistorted as TUM's are ([`DatasetConfig::undistort`]).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -19,6 +20,7 @@ use std::path::{Path, PathBuf};
 use himap_core::camera::{Intrinsics, Pose};
 use serde::Deserialize;
 
+use super::tum::{remap, undistortion};
 use super::{
     check_camera, check_depth_scale, check_image_header, check_pose, folder_name, load_depth,
     load_rgb, parse_numbers, read_text, CameraConfig, Dataset, DatasetConfig, DatasetError, Frame,
@@ -30,6 +32,9 @@ use super::{
 pub struct ReplicaDataset {
     root: PathBuf,
     name: String,
+    /// Source pixel (x, y) of every output pixel, when the configured camera has distortion
+    /// coefficients (and [`DatasetConfig::undistort`]): colour images are undistorted as TUM's.
+    undistort_map: Option<Vec<[f32; 2]>>,
     /// Colour file of every source frame.
     frames: Vec<PathBuf>,
     /// Depth file of every source frame (empty when the sequence has no depth or it is not
@@ -316,6 +321,10 @@ impl ReplicaDataset {
             (Vec::new(), depth_scale.unwrap_or(REPLICA_DEPTH_SCALE))
         };
 
+        let undistort_map = match &cfg.camera {
+            Some(c) => undistortion(root, c, &native, cfg.undistort)?,
+            None => None,
+        };
         let first = sel.indices[0];
         check_image_header(&frames[first], &native)?;
         if load_depth {
@@ -328,6 +337,7 @@ impl ReplicaDataset {
             depths,
             poses,
             depth_scale,
+            undistort_map,
             sel,
         })
     }
@@ -368,7 +378,10 @@ impl Dataset for ReplicaDataset {
 
     fn frame(&self, i: usize) -> Result<Frame, DatasetError> {
         let src = self.sel.source(&self.root, i)?;
-        let rgb = load_rgb(&self.frames[src], &self.sel.native)?;
+        let mut rgb = load_rgb(&self.frames[src], &self.sel.native)?;
+        if let Some(map) = &self.undistort_map {
+            rgb = remap(&rgb, map);
+        }
         let depth = if self.has_depth() {
             let d = load_depth(&self.depths[src], self.depth_scale, self.sel.depth_native())?;
             Some(self.sel.finish_depth(d))

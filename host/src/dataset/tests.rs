@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use himap_core::camera::{Intrinsics, Pose};
 
-use super::tum::{quat_to_matrix, undistort_map};
+use super::tum::{quat_to_matrix, remap, undistort_map};
 use super::*;
 
 // ---------------------------------------------------------------------------------------------
@@ -1300,4 +1300,40 @@ fn max_width_resizes_wider_sequences_only() {
         open_with(dir.path(), &none, &cfg(8)).unwrap().intrinsics(),
         fixture_camera()
     );
+}
+
+#[test]
+fn replica_layout_undistorts_a_configured_distorted_camera() {
+    let dir = tempfile::tempdir().unwrap();
+    crate::synth::write_synthetic(
+        dir.path(),
+        &crate::synth::SynthOptions {
+            frames: 2,
+            width: 40,
+            height: 30,
+            seed: 0,
+        },
+    )
+    .unwrap();
+    let plain = open(dir.path(), &LoadOptions::default()).unwrap();
+    let k = plain.intrinsics();
+    let dist = [0.2, -0.1, 0.001, -0.002, 0.0];
+    let cfg = |undistort: bool| DatasetConfig {
+        camera: Some(CameraConfig {
+            distortion: Some(dist),
+            ..CameraConfig::pinhole(&k)
+        }),
+        undistort,
+        ..DatasetConfig::default()
+    };
+    let ds = open_with(dir.path(), &LoadOptions::default(), &cfg(true)).unwrap();
+    let (a, b) = (plain.frame(1).unwrap(), ds.frame(1).unwrap());
+    // The colour image is remapped through the camera's undistortion map (TUM's), depth is not.
+    let want = remap(&a.rgb, &undistort_map(&k, dist));
+    assert_eq!(b.rgb.data, want.data);
+    assert_ne!(b.rgb.data, a.rgb.data, "the distortion moves pixels");
+    assert_eq!(b.depth.unwrap().data, a.depth.unwrap().data);
+    // `undistort = false` keeps the files' pixels.
+    let off = open_with(dir.path(), &LoadOptions::default(), &cfg(false)).unwrap();
+    assert_eq!(off.frame(1).unwrap().rgb.data, a.rgb.data);
 }

@@ -286,7 +286,7 @@ fn associate(
 
 /// The undistortion map of the camera when asked for and its coefficients are not all zero;
 /// non-finite coefficients are an error.
-fn undistortion(
+pub(crate) fn undistortion(
     root: &Path,
     camera: &CameraConfig,
     native: &Intrinsics,
