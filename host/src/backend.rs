@@ -259,6 +259,12 @@ pub struct ParallelCpuBackend {
     live_stale: bool,
     /// The blocks the current step's Adam visits (`live` or touched by a worker).
     run: [Vec<bool>; NUM_GROUPS],
+    /// The blocks some worker touched this step: only their worker buffers can hold a
+    /// contribution (the others were zeroed when last summed), so only they are summed.
+    fresh: [Vec<bool>; NUM_GROUPS],
+    /// Per block of `grads`: whether its sum may be non-zero (a block summed since it was
+    /// last cleared). An untouched block's sum is zero: cleared once, not rewritten each step.
+    sum_dirty: [Vec<bool>; NUM_GROUPS],
 }
 
 /// Parameters per block of the sum and Adam pass (and of the touched / live flags).
@@ -553,6 +559,8 @@ impl ParallelCpuBackend {
         let live = live_blocks(&data);
         Ok(Self {
             run: live.clone(),
+            fresh: live.clone().map(|b| vec![false; b.len()]),
+            sum_dirty: live.clone().map(|b| vec![false; b.len()]),
             live,
             live_stale: false,
             workers: (0..n).map(|_| Mutex::new(Worker::new(lens))).collect(),
@@ -691,6 +699,9 @@ impl ParallelCpuBackend {
             for g in self.grads.iter_mut() {
                 g.fill(0);
             }
+            for d in self.sum_dirty.iter_mut() {
+                d.fill(false);
+            }
         }
         let ModelData { params, m, v, .. } = &self.data;
         let mut workers: Vec<_> = self
@@ -703,12 +714,17 @@ impl ParallelCpuBackend {
             let hw = AdamHw::new(&AdamStep::new(&self.adam[g], t));
             let bound = hw.bound_applies();
             let run = &mut self.run[g];
-            run.clone_from(&self.live[g]);
+            let fresh = &mut self.fresh[g];
+            fresh.fill(false);
             for w in workers.iter_mut() {
-                for (r, t) in run.iter_mut().zip(w.touched[g].iter_mut()) {
-                    *r |= std::mem::take(t);
+                for (f, t) in fresh.iter_mut().zip(w.touched[g].iter_mut()) {
+                    *f |= std::mem::take(t);
                 }
             }
+            for ((r, &l), &f) in run.iter_mut().zip(&self.live[g]).zip(fresh.iter()) {
+                *r = l | f;
+            }
+            let dirty = &mut self.sum_dirty[g];
             let mut parts: Vec<std::slice::ChunksMut<'_, i64>> = workers
                 .iter_mut()
                 .map(|w| w.grads[g].chunks_mut(BLOCK))
@@ -726,16 +742,36 @@ impl ParallelCpuBackend {
                     // its sum is written now, so Adam visits it from now on (where it is the
                     // identity while its moments and sum are zero)
                     self.live[g][b] = true;
-                    items.push((p, m, v, sum, blocks));
+                    // Untouched: every worker block is zero, and so is the sum once cleared.
+                    let (clear, blocks) = if fresh[b] {
+                        (true, blocks)
+                    } else {
+                        (dirty[b], Vec::new())
+                    };
+                    dirty[b] = fresh[b];
+                    items.push((p, m, v, sum, clear, blocks));
                 }
             }
             finite &= self.pool.install(|| {
                 items
                     .into_par_iter()
-                    .map(|(p, m, v, sum, mut blocks)| {
+                    .map(|(p, m, v, sum, clear, mut blocks)| {
                         // Worker by worker over the whole block, then the check: loops the
                         // compiler vectorises (integer sums: the same in any order).
-                        sum.fill(0);
+                        if clear {
+                            sum.fill(0);
+                        }
+                        if blocks.is_empty() {
+                            // Untouched: the gradient is zero (`from_fixed(0)` is +0).
+                            let bounded = bound
+                                && p.iter().zip(m).zip(v).fold(true, |ok, ((&p, &m), &v)| {
+                                    ok & AdamHw::within_bound(p, m, v, 0.0)
+                                });
+                            return bounded
+                                || p.iter().zip(m).zip(v).fold(true, |ok, ((&p, &m), &v)| {
+                                    ok & hw.update_is_finite(p, m, v, 0.0)
+                                });
+                        }
                         for b in blocks.iter_mut() {
                             for (s, x) in sum.iter_mut().zip(b.iter_mut()) {
                                 *s = s.wrapping_add(*x);
@@ -774,7 +810,7 @@ impl ParallelCpuBackend {
             // One work item per block that may change: its parameters, moments and summed
             // gradient. Skipped blocks have zero moments and a zero sum, where Adam is the
             // identity.
-            let run = &self.run[g];
+            let (run, fresh) = (&self.run[g], &self.fresh[g]);
             let items: Vec<_> = params[g]
                 .chunks_mut(BLOCK)
                 .zip(m[g].chunks_mut(BLOCK))
@@ -782,14 +818,23 @@ impl ParallelCpuBackend {
                 .zip(self.grads[g].chunks(BLOCK))
                 .enumerate()
                 .filter(|(b, _)| run[*b])
-                .map(|(_, x)| x)
+                .map(|(b, x)| (fresh[b], x))
                 .collect();
             self.pool.install(|| {
-                items.into_par_iter().for_each(|(((p, m), v), sum)| {
-                    for (((p, m), v), &q) in p.iter_mut().zip(m).zip(v).zip(sum) {
-                        hw.update(p, m, v, fixed::from_fixed(q));
-                    }
-                });
+                items
+                    .into_par_iter()
+                    .for_each(|(fresh, (((p, m), v), sum))| {
+                        if fresh {
+                            for (((p, m), v), &q) in p.iter_mut().zip(m).zip(v).zip(sum) {
+                                hw.update(p, m, v, fixed::from_fixed(q));
+                            }
+                        } else {
+                            // No contribution this step: the sum is zero, `from_fixed(0)` is +0.
+                            for ((p, m), v) in p.iter_mut().zip(m).zip(v) {
+                                hw.update(p, m, v, 0.0);
+                            }
+                        }
+                    });
             });
         }
     }
