@@ -174,6 +174,117 @@ pub fn ssim_patch(
     ssim
 }
 
+/// The source side of [`ssim_patch`], kept while one source patch is compared with many
+/// targets (the warping loss compares a pixel's patch with every view): the window and the
+/// source's window-weighted mean and variance, computed with [`ssim_patch`]'s operations in
+/// its order.
+pub struct SsimSource {
+    size: usize,
+    w: [f32; PATCH_PIXELS],
+    mu: [f32; 3],
+    var: [f32; 3],
+}
+
+impl SsimSource {
+    /// The source side of patch `a` compared over its central `size x size` region.
+    pub fn new(size: usize, a: &[[f32; 3]; PATCH_PIXELS]) -> Self {
+        let size = window_size(size);
+        let mut s = SsimSource {
+            size,
+            w: [0.0; PATCH_PIXELS],
+            mu: [0.0; 3],
+            var: [0.0; 3],
+        };
+        gaussian_window(size, SSIM_SIGMA, &mut s.w);
+        let mut k = 0;
+        while k < size * size {
+            let (wk, p) = (s.w[k], patch_index(size, k));
+            let mut c = 0;
+            while c < 3 {
+                s.mu[c] += wk * a[p][c];
+                c += 1;
+            }
+            k += 1;
+        }
+        k = 0;
+        while k < size * size {
+            let (wk, p) = (s.w[k], patch_index(size, k));
+            let mut c = 0;
+            while c < 3 {
+                let x = a[p][c] - s.mu[c];
+                s.var[c] += wk * (x * x);
+                c += 1;
+            }
+            k += 1;
+        }
+        s
+    }
+}
+
+/// [`ssim_patch`] of the source `a` (prepared as `src`) against `b`, with only the target's
+/// gradient: the same per-channel SSIM and the same `d_b` bits (each moment is accumulated
+/// in [`ssim_patch`]'s order; the source's moments do not depend on `b`).
+pub fn ssim_patch_target(
+    src: &SsimSource,
+    a: &[[f32; 3]; PATCH_PIXELS],
+    b: &[[f32; 3]; PATCH_PIXELS],
+    d_b: &mut [[f32; 3]; PATCH_PIXELS],
+) -> [f32; 3] {
+    let size = src.size;
+    let w = &src.w;
+    if size < PATCH {
+        let mut i = 0;
+        while i < PATCH_PIXELS {
+            d_b[i] = [0.0; 3];
+            i += 1;
+        }
+    }
+    let mut m = SsimMoments {
+        mu_a: src.mu,
+        mu_b: [0.0; 3],
+        var_a: src.var,
+        var_b: [0.0; 3],
+        cov: [0.0; 3],
+    };
+    let mut k = 0;
+    while k < size * size {
+        let (wk, p) = (w[k], patch_index(size, k));
+        let mut c = 0;
+        while c < 3 {
+            m.mu_b[c] += wk * b[p][c];
+            c += 1;
+        }
+        k += 1;
+    }
+    k = 0;
+    while k < size * size {
+        let (wk, p) = (w[k], patch_index(size, k));
+        let mut c = 0;
+        while c < 3 {
+            let x = a[p][c] - m.mu_a[c];
+            let y = b[p][c] - m.mu_b[c];
+            m.var_b[c] += wk * (y * y);
+            m.cov[c] += wk * (x * y);
+            c += 1;
+        }
+        k += 1;
+    }
+    let (ssim, g) = ssim_and_moment_grads(&m);
+    k = 0;
+    while k < size * size {
+        let (wk, p) = (w[k], patch_index(size, k));
+        let mut c = 0;
+        while c < 3 {
+            let x = a[p][c] - m.mu_a[c];
+            let y = b[p][c] - m.mu_b[c];
+            d_b[p][c] = wk * (g.mu_b[c] + y * g.var[c] + x * g.cov[c]);
+            c += 1;
+        }
+        k += 1;
+    }
+    ssim
+}
+
 /// Index in the 11x11 patch of pixel `k` (row-major) of its central `size x size` region.
 #[inline(always)]
 fn patch_index(size: usize, k: usize) -> usize {
@@ -366,6 +477,47 @@ mod tests {
             let fd = (smooth_l1(x + h, 0.1).0 - smooth_l1(x - h, 0.1).0) / (2.0 * h);
             let d = smooth_l1(x, 0.1).1;
             assert!((fd - d).abs() < 2e-3, "{x}: {fd} vs {d}");
+        }
+    }
+
+    /// The warping loss's prepared-source form gives `ssim_patch`'s SSIM and target gradient
+    /// bit for bit, for every region size, on random and on flat patches (and zero outside the
+    /// region).
+    #[test]
+    fn prepared_source_ssim_equals_ssim_patch() {
+        let fill = |seed: u32, flat: bool| -> Patch {
+            let mut p = [[0.0f32; 3]; PATCH_PIXELS];
+            for (i, px) in p.iter_mut().enumerate() {
+                for (c, v) in px.iter_mut().enumerate() {
+                    *v = if flat {
+                        0.25 + 0.1 * c as f32
+                    } else {
+                        uniform(seed, c as u32, i as u32)
+                    };
+                }
+            }
+            p
+        };
+        for (a, b) in [
+            (fill(1, false), fill(2, false)),
+            (fill(3, true), fill(4, false)),
+            (fill(5, false), fill(5, false)),
+        ] {
+            for size in [1, 3, 5, 7, 9, 11, 12] {
+                let (mut da, mut db) = ([[0.0f32; 3]; PATCH_PIXELS], [[0.0f32; 3]; PATCH_PIXELS]);
+                let want = ssim_patch(size, &a, &b, &mut da, &mut db);
+                let mut got_db = [[7.0f32; 3]; PATCH_PIXELS];
+                let src = SsimSource::new(size, &a);
+                let got = ssim_patch_target(&src, &a, &b, &mut got_db);
+                assert_eq!(want.map(f32::to_bits), got.map(f32::to_bits), "size {size}");
+                for p in 0..PATCH_PIXELS {
+                    assert_eq!(
+                        db[p].map(f32::to_bits),
+                        got_db[p].map(f32::to_bits),
+                        "size {size} pixel {p}"
+                    );
+                }
+            }
         }
     }
 

@@ -69,7 +69,7 @@
 //! images (measured with a throw-away harness, noisy: 140 to 200 µs).
 
 use crate::camera::{Intrinsics, Pose, PoseRead};
-use crate::loss::{smooth_l1, ssim_patch, PATCH, PATCH_PIXELS};
+use crate::loss::{smooth_l1, ssim_patch_target, SsimSource, PATCH, PATCH_PIXELS};
 use crate::Error;
 
 /// The largest window (frames per call) [`warp_pixel`] handles; more are ignored.
@@ -455,10 +455,14 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     let mut tgt: Patch = [[0.0f32; 3]; PATCH_PIXELS];
     let mut dtgt: Patch = [[0.0f32; 3]; PATCH_PIXELS];
     let mut g: Patch = [[0.0f32; 3]; PATCH_PIXELS];
-    let mut d_a: Patch = [[0.0f32; 3]; PATCH_PIXELS];
     let mut d_b: Patch = [[0.0f32; 3]; PATCH_PIXELS];
     let lo = (MAX_HALF as i32 - half) as usize;
     let hi = lo + side;
+    // The source patch's side of both SSIM terms, shared by every pair.
+    let ssim_src = (
+        SsimSource::new(side, &src_patch),
+        SsimSource::new(small, &src_patch),
+    );
 
     let mut loss = 0.0f32;
     let mut d_depth = 0.0f32;
@@ -492,8 +496,7 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
             );
         }
 
-        let sides = (side, small);
-        let pair = pair_loss(cfg, sides, &src_patch, &tgt, &mut g, &mut d_a, &mut d_b);
+        let pair = pair_loss(cfg, &ssim_src, &src_patch, &tgt, &mut g, &mut d_b);
         loss += pair;
         d_depth += chain_to_depth((lo, hi), &g, &dtgt);
         j += 1;
@@ -709,29 +712,28 @@ fn warp_view<I: FrameImages + ?Sized>(
     }
 }
 
-/// One pair's loss (the 11x11 and 7x7 SSIM terms over patches of `sides` = (side, small), and
-/// the centre term), adding its cotangent with respect to the warped patch into `g`.
+/// One pair's loss (the SSIM terms over the source patch's two regions, prepared in `ssim_src`,
+/// and the centre term), adding its cotangent with respect to the warped patch into `g`.
 #[inline(always)]
 fn pair_loss(
     cfg: &WarpConfig,
-    (side, small): (usize, usize),
+    (src11, src7): &(SsimSource, SsimSource),
     src_patch: &Patch,
     tgt: &Patch,
     g: &mut Patch,
-    d_a: &mut Patch,
     d_b: &mut Patch,
 ) -> f32 {
     let c11 = cfg.w_patch * cfg.w_patch11;
     let c7 = cfg.w_patch * cfg.w_patch7;
     let mut patch_term = 0.0f32;
     if c11 != 0.0 {
-        let s = ssim_patch(side, src_patch, tgt, d_a, d_b);
+        let s = ssim_patch_target(src11, src_patch, tgt, d_b);
         let s11 = 0.5 * ((1.0 - s[0]) + (1.0 - s[1]) + (1.0 - s[2]));
         patch_term += cfg.w_patch11 * s11;
         add_scaled_patch(g, -0.5 * c11, d_b);
     }
     if c7 != 0.0 {
-        let s = ssim_patch(small, src_patch, tgt, d_a, d_b);
+        let s = ssim_patch_target(src7, src_patch, tgt, d_b);
         let s7 = 0.5 * ((1.0 - s[0]) + (1.0 - s[1]) + (1.0 - s[2]));
         patch_term += cfg.w_patch7 * s7;
         add_scaled_patch(g, -0.5 * c7, d_b);
