@@ -111,3 +111,11 @@ for d in house demo/map; do
         "\($n) vs the observed ground truth: Acc \(.accuracy_cm * 100 | round / 100) Comp \(.completion_cm * 100 | round / 100) Ratio \(.completion_ratio_pct * 10 | round / 10)"' \
         "$OUT/$d/summary.json"
 done
+# The final map's depth error beyond its mean: the median and the share of pixels off by 0.5 m
+# or more (7-Scenes' mean is mostly a few surfaces placed far in front of the truth).
+for d in icl 7scenes house demo/map; do
+    [ -f "$OUT/$d/summary.json" ] || continue
+    jq -r --arg n "$d" 'select(.final_depth_median_cm != null) |
+        "\($n) final map depth: mean \(.final_depth_l1_cm * 10 | round / 10) cm, median \(.final_depth_median_cm * 10 | round / 10) cm, off by >= 0.5 m \(.final_depth_far_share * 1000 | round / 10) %"' \
+        "$OUT/$d/summary.json"
+done

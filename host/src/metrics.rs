@@ -167,6 +167,82 @@ pub fn depth_l1_cm(rendered: &[f32], gt: &[f32]) -> Option<f64> {
     (count > 0).then(|| sum / count as f64 * 100.0)
 }
 
+/// The spread of `|rendered - gt|` over many pixels (those with a valid ground truth, as in
+/// [`depth_l1_cm`]), in millimetre bins up to 10 m: a mean Depth L1 can be carried by a few
+/// pixels far off (a surface placed in front of the truth) while most are close, and the
+/// median and the share of pixels off by more than a threshold tell the two apart.
+#[derive(Clone, Debug)]
+pub struct DepthErrorSpread {
+    /// Pixels per millimetre bin; the last bin holds every error of 10 m and more (and
+    /// non-finite ones).
+    bins: Vec<u64>,
+    count: u64,
+}
+
+impl Default for DepthErrorSpread {
+    fn default() -> Self {
+        Self {
+            bins: vec![0; Self::BINS],
+            count: 0,
+        }
+    }
+}
+
+impl DepthErrorSpread {
+    const BINS: usize = 10_001;
+
+    /// Adds the errors of one depth map.
+    ///
+    /// # Panics
+    /// If the slices have different lengths.
+    pub fn add(&mut self, rendered: &[f32], gt: &[f32]) {
+        assert_eq!(rendered.len(), gt.len(), "depth maps have different sizes");
+        for (r, g) in rendered.iter().zip(gt) {
+            if *g > 0.0 && g.is_finite() {
+                let e = (*r as f64 - *g as f64).abs() * 1000.0;
+                let b = if e.is_finite() {
+                    (e as usize).min(Self::BINS - 1)
+                } else {
+                    Self::BINS - 1
+                };
+                self.bins[b] += 1;
+                self.count += 1;
+            }
+        }
+    }
+
+    /// Pixels counted.
+    pub fn count(&self) -> u64 {
+        self.count
+    }
+
+    /// Median error in centimetres (the middle of its millimetre bin); `None` without pixels.
+    pub fn median_cm(&self) -> Option<f64> {
+        if self.count == 0 {
+            return None;
+        }
+        let half = self.count.div_ceil(2);
+        let mut seen = 0;
+        for (b, &n) in self.bins.iter().enumerate() {
+            seen += n;
+            if seen >= half {
+                return Some((b as f64 + 0.5) / 10.0);
+            }
+        }
+        None
+    }
+
+    /// Share (0..1) of the pixels whose error is at least `metres` (to the millimetre).
+    pub fn share_at_least(&self, metres: f64) -> Option<f64> {
+        if self.count == 0 {
+            return None;
+        }
+        let from = ((metres * 1000.0).max(0.0) as usize).min(Self::BINS - 1);
+        let n: u64 = self.bins[from..].iter().sum();
+        Some(n as f64 / self.count as f64)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -305,6 +381,26 @@ mod tests {
         assert!(s > 0.3 && s < 0.99, "{s}");
         // Symmetric in its arguments.
         assert!((ssim(&b, &a, w, h) - s).abs() < 1e-12);
+    }
+
+    #[test]
+    fn depth_error_spread_by_hand() {
+        // Errors 0.0042, 0.0103, 0.7 and 2.0 m at valid pixels; the 0 and the NaN ground
+        // truths are skipped. Sorted bins (mm): 4, 10, 700, 2000: the median is the 2nd of
+        // 4 (div_ceil), bin 10 -> 1.05 cm; two of four are >= 0.5 m.
+        let rd = [1.0042, 2.0, 3.0, 1.0, 5.0, 1.0];
+        let gt = [1.0, 2.0103, 2.3, 3.0, 0.0, f32::NAN];
+        let mut s = DepthErrorSpread::default();
+        assert_eq!(s.median_cm(), None);
+        s.add(&rd, &gt);
+        assert_eq!(s.count(), 4);
+        assert!((s.median_cm().unwrap() - 1.05).abs() < 1e-9);
+        assert_eq!(s.share_at_least(0.5), Some(0.5));
+        assert_eq!(s.share_at_least(0.0), Some(1.0));
+        assert_eq!(s.share_at_least(20.0), Some(0.0));
+        // A non-finite rendered depth counts as far off.
+        s.add(&[f32::INFINITY], &[1.0]);
+        assert_eq!(s.share_at_least(10.0), Some(0.2));
     }
 
     #[test]

@@ -56,8 +56,15 @@ pub(super) struct FinalEval {
     pub(super) psnr: Option<f64>,
     pub(super) ssim: Option<f64>,
     pub(super) depth_l1_cm: Option<f64>,
+    /// Over every evaluated pixel: the median depth error (cm) and the share of pixels off
+    /// by [`FAR_ERROR_M`] or more.
+    pub(super) depth_median_cm: Option<f64>,
+    pub(super) depth_far_share: Option<f64>,
     pub(super) per_frame: Vec<FinalFrame>,
 }
+
+/// The depth error (m) from which the final-map evaluation counts a pixel as far off.
+pub const FAR_ERROR_M: f64 = 0.5;
 
 /// One frame of the final-map evaluation (`summary.json`: `final_per_frame`), so that
 /// forgetting shows where along the sequence it happens.
@@ -81,9 +88,14 @@ where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
     let mut per_frame = Vec::new();
+    let mut spread = crate::metrics::DepthErrorSpread::default();
     if every > 0 {
         for i in (0..ds.len()).step_by(every) {
             let v = evaluate_view(backend, ek, &ds.frame(i)?)?;
+            if let Some(g) = &v.gt_depth {
+                let depth: Vec<f32> = v.out.iter().map(|r| r.depth).collect();
+                spread.add(&depth, g);
+            }
             per_frame.push(FinalFrame {
                 frame: i,
                 psnr: v.psnr,
@@ -97,6 +109,8 @@ where
         psnr: mean(per_frame.iter().map(|f| f.psnr)),
         ssim: mean(per_frame.iter().map(|f| f.ssim)),
         depth_l1_cm: mean(per_frame.iter().filter_map(|f| f.depth_l1_cm)),
+        depth_median_cm: spread.median_cm(),
+        depth_far_share: spread.share_at_least(FAR_ERROR_M),
         per_frame,
     })
 }

@@ -473,6 +473,8 @@ mod tests {
             final_psnr: None,
             final_ssim: None,
             final_depth_l1_cm: None,
+            final_depth_median_cm: None,
+            final_depth_far_share: None,
             final_per_frame: Vec::new(),
             mesh: None,
             mesh_observed_gt: None,

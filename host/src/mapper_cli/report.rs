@@ -63,6 +63,11 @@ pub struct MapSummary {
     pub final_psnr: Option<f64>,
     pub final_ssim: Option<f64>,
     pub final_depth_l1_cm: Option<f64>,
+    /// Over every pixel of the final-map evaluation: the median depth error (cm) and the
+    /// share (0..1) of pixels off by 0.5 m or more (the mean can be carried by a few surfaces
+    /// placed far from the truth while most pixels are close).
+    pub final_depth_median_cm: Option<f64>,
+    pub final_depth_far_share: Option<f64>,
     pub final_per_frame: Vec<FinalFrame>,
     /// Accuracy, Completion (cm), Completion ratio (%) when a ground truth exists.
     pub mesh: Option<crate::eval::MeshMetrics>,

@@ -270,8 +270,15 @@ where
     let (n, k, ctx) = (ds.len(), run.ctx.k, &run.ctx);
     let fin = final_map_eval(&mut backend, ds, &rec.ek, cfg.eval.final_every as usize)?;
     if opts.progress {
+        let spread = match (fin.depth_median_cm, fin.depth_far_share) {
+            (Some(m), Some(f)) => format!(
+                " (median {m:.1} cm, {:.1} % of pixels off by {FAR_ERROR_M} m or more)",
+                100.0 * f
+            ),
+            _ => String::new(),
+        };
         eprintln!(
-            "final map over {} frames of the sequence: PSNR {} dB, SSIM {}, Depth L1 {} cm",
+            "final map over {} frames of the sequence: PSNR {} dB, SSIM {}, Depth L1 {} cm{spread}",
             fin.frames,
             fmt_opt(fin.psnr, 2),
             fmt_opt(fin.ssim, 3),
@@ -325,6 +332,8 @@ where
         final_psnr: fin.psnr,
         final_ssim: fin.ssim,
         final_depth_l1_cm: fin.depth_l1_cm,
+        final_depth_median_cm: fin.depth_median_cm,
+        final_depth_far_share: fin.depth_far_share,
         final_per_frame: fin.per_frame,
         mesh: mesh_metrics,
         mesh_observed_gt,
