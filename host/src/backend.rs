@@ -271,6 +271,10 @@ pub struct ParallelCpuBackend {
 const BLOCK: usize = 1024;
 const BLOCK_SHIFT: u32 = BLOCK.trailing_zeros();
 
+/// The summed gradient of a block no worker touched this step: Adam and its check read this
+/// (cached) block instead of the block's own sum, which was cleared and is not read again.
+static ZERO_BLOCK: [i64; BLOCK] = [0; BLOCK];
+
 /// A pool thread's private state: its own fixed-point gradient buffers for every group (plain
 /// integer adds, no atomics; summed over the workers before Adam, which gives the same integers
 /// in any order), the ray cache, scratch and the stored decoder activations of a ray.
@@ -749,28 +753,17 @@ impl ParallelCpuBackend {
                         (dirty[b], Vec::new())
                     };
                     dirty[b] = fresh[b];
-                    items.push((p, m, v, sum, clear, blocks));
+                    items.push((p, m, v, sum, clear, fresh[b], blocks));
                 }
             }
             finite &= self.pool.install(|| {
                 items
                     .into_par_iter()
-                    .map(|(p, m, v, sum, clear, mut blocks)| {
+                    .map(|(p, m, v, sum, clear, fresh, mut blocks)| {
                         // Worker by worker over the whole block, then the check: loops the
                         // compiler vectorises (integer sums: the same in any order).
                         if clear {
                             sum.fill(0);
-                        }
-                        if blocks.is_empty() {
-                            // Untouched: the gradient is zero (`from_fixed(0)` is +0).
-                            let bounded = bound
-                                && p.iter().zip(m).zip(v).fold(true, |ok, ((&p, &m), &v)| {
-                                    ok & AdamHw::within_bound(p, m, v, 0.0)
-                                });
-                            return bounded
-                                || p.iter().zip(m).zip(v).fold(true, |ok, ((&p, &m), &v)| {
-                                    ok & hw.update_is_finite(p, m, v, 0.0)
-                                });
                         }
                         for b in blocks.iter_mut() {
                             for (s, x) in sum.iter_mut().zip(b.iter_mut()) {
@@ -778,6 +771,9 @@ impl ParallelCpuBackend {
                                 *x = 0;
                             }
                         }
+                        // An untouched block's gradient is zero: read from the cached
+                        // zero block rather than from its (cleared) sum.
+                        let sum: &[i64] = if fresh { sum } else { &ZERO_BLOCK[..p.len()] };
                         // The bound (comparisons) first; the exact check (Adam's own
                         // operations) only where it does not settle it: the same decision.
                         let bounded = bound
@@ -824,15 +820,10 @@ impl ParallelCpuBackend {
                 items
                     .into_par_iter()
                     .for_each(|(fresh, (((p, m), v), sum))| {
-                        if fresh {
-                            for (((p, m), v), &q) in p.iter_mut().zip(m).zip(v).zip(sum) {
-                                hw.update(p, m, v, fixed::from_fixed(q));
-                            }
-                        } else {
-                            // No contribution this step: the sum is zero, `from_fixed(0)` is +0.
-                            for ((p, m), v) in p.iter_mut().zip(m).zip(v) {
-                                hw.update(p, m, v, 0.0);
-                            }
+                        // An untouched block's gradient is zero: the cached zero block.
+                        let sum: &[i64] = if fresh { sum } else { &ZERO_BLOCK[..p.len()] };
+                        for (((p, m), v), &q) in p.iter_mut().zip(m).zip(v).zip(sum) {
+                            hw.update(p, m, v, fixed::from_fixed(q));
                         }
                     });
             });

@@ -159,18 +159,17 @@ pub fn ssim_patch(
     d_a: &mut [[f32; 3]; PATCH_PIXELS],
     d_b: &mut [[f32; 3]; PATCH_PIXELS],
 ) -> [f32; 3] {
-    let size = window_size(size);
-    let mut w = [0.0f32; PATCH_PIXELS];
-    gaussian_window(size, SSIM_SIGMA, &mut w);
+    let src = SsimSource::new(size, a);
     let mut i = 0;
     while i < PATCH_PIXELS {
         d_a[i] = [0.0; 3];
         d_b[i] = [0.0; 3];
         i += 1;
     }
-    let m = ssim_moments(size, &w, a, b);
+    let m = target_moments(&src, a, b);
     let (ssim, g) = ssim_and_moment_grads(&m);
-    ssim_patch_backward(size, &w, a, b, &m, &g, d_a, d_b);
+    source_backward(&src, a, b, &m, &g, d_a);
+    target_backward(&src, a, b, &m, &g, d_b);
     ssim
 }
 
@@ -230,15 +229,46 @@ pub fn ssim_patch_target(
     b: &[[f32; 3]; PATCH_PIXELS],
     d_b: &mut [[f32; 3]; PATCH_PIXELS],
 ) -> [f32; 3] {
-    let size = src.size;
-    let w = &src.w;
-    if size < PATCH {
+    if src.size < PATCH {
         let mut i = 0;
         while i < PATCH_PIXELS {
             d_b[i] = [0.0; 3];
             i += 1;
         }
     }
+    let m = target_moments(src, a, b);
+    let (ssim, g) = ssim_and_moment_grads(&m);
+    target_backward(src, a, b, &m, &g, d_b);
+    ssim
+}
+
+/// Index in the 11x11 patch of pixel `k` (row-major) of its central `size x size` region.
+#[inline(always)]
+fn patch_index(size: usize, k: usize) -> usize {
+    let off = (PATCH - size) / 2;
+    (k / size + off) * PATCH + k % size + off
+}
+
+/// The window-weighted moments of two patches, per channel.
+struct SsimMoments {
+    mu_a: [f32; 3],
+    mu_b: [f32; 3],
+    var_a: [f32; 3],
+    var_b: [f32; 3],
+    cov: [f32; 3],
+}
+
+/// The moments of `b` and its covariance with the source `a` ([`SsimSource`] holds `a`'s):
+/// window-weighted means, then central second moments (two passes: `sum w (a - mu)^2`
+/// instead of `E[a^2] - mu^2`, which cancels catastrophically in f32 when the variance is
+/// small next to `C2`).
+#[inline(always)]
+fn target_moments(
+    src: &SsimSource,
+    a: &[[f32; 3]; PATCH_PIXELS],
+    b: &[[f32; 3]; PATCH_PIXELS],
+) -> SsimMoments {
+    let (size, w) = (src.size, &src.w);
     let mut m = SsimMoments {
         mu_a: src.mu,
         mu_b: [0.0; 3],
@@ -263,80 +293,6 @@ pub fn ssim_patch_target(
         while c < 3 {
             let x = a[p][c] - m.mu_a[c];
             let y = b[p][c] - m.mu_b[c];
-            m.var_b[c] += wk * (y * y);
-            m.cov[c] += wk * (x * y);
-            c += 1;
-        }
-        k += 1;
-    }
-    let (ssim, g) = ssim_and_moment_grads(&m);
-    k = 0;
-    while k < size * size {
-        let (wk, p) = (w[k], patch_index(size, k));
-        let mut c = 0;
-        while c < 3 {
-            let x = a[p][c] - m.mu_a[c];
-            let y = b[p][c] - m.mu_b[c];
-            d_b[p][c] = wk * (g.mu_b[c] + y * g.var[c] + x * g.cov[c]);
-            c += 1;
-        }
-        k += 1;
-    }
-    ssim
-}
-
-/// Index in the 11x11 patch of pixel `k` (row-major) of its central `size x size` region.
-#[inline(always)]
-fn patch_index(size: usize, k: usize) -> usize {
-    let off = (PATCH - size) / 2;
-    (k / size + off) * PATCH + k % size + off
-}
-
-/// The window-weighted moments of two patches, per channel.
-struct SsimMoments {
-    mu_a: [f32; 3],
-    mu_b: [f32; 3],
-    var_a: [f32; 3],
-    var_b: [f32; 3],
-    cov: [f32; 3],
-}
-
-/// Window-weighted means, then central second moments (two passes: `sum w (a - mu)^2`
-/// instead of `E[a^2] - mu^2`, which cancels catastrophically in f32 when the variance is
-/// small next to `C2`).
-#[inline(always)]
-fn ssim_moments(
-    size: usize,
-    w: &[f32; PATCH_PIXELS],
-    a: &[[f32; 3]; PATCH_PIXELS],
-    b: &[[f32; 3]; PATCH_PIXELS],
-) -> SsimMoments {
-    let mut m = SsimMoments {
-        mu_a: [0.0; 3],
-        mu_b: [0.0; 3],
-        var_a: [0.0; 3],
-        var_b: [0.0; 3],
-        cov: [0.0; 3],
-    };
-    let mut k = 0;
-    while k < size * size {
-        let (wk, p) = (w[k], patch_index(size, k));
-        let mut c = 0;
-        while c < 3 {
-            m.mu_a[c] += wk * a[p][c];
-            m.mu_b[c] += wk * b[p][c];
-            c += 1;
-        }
-        k += 1;
-    }
-    k = 0;
-    while k < size * size {
-        let (wk, p) = (w[k], patch_index(size, k));
-        let mut c = 0;
-        while c < 3 {
-            let x = a[p][c] - m.mu_a[c];
-            let y = b[p][c] - m.mu_b[c];
-            m.var_a[c] += wk * (x * x);
             m.var_b[c] += wk * (y * y);
             m.cov[c] += wk * (x * y);
             c += 1;
@@ -388,20 +344,18 @@ fn ssim_and_moment_grads(m: &SsimMoments) -> ([f32; 3], SsimMomentGrads) {
     (ssim, g)
 }
 
-/// The moments' gradients pushed back to the pixels of the used region (written, not
-/// accumulated).
-#[allow(clippy::too_many_arguments)]
+/// The moments' gradients pushed back to the source's pixels of the used region (written,
+/// not accumulated).
 #[inline(always)]
-fn ssim_patch_backward(
-    size: usize,
-    w: &[f32; PATCH_PIXELS],
+fn source_backward(
+    src: &SsimSource,
     a: &[[f32; 3]; PATCH_PIXELS],
     b: &[[f32; 3]; PATCH_PIXELS],
     m: &SsimMoments,
     g: &SsimMomentGrads,
     d_a: &mut [[f32; 3]; PATCH_PIXELS],
-    d_b: &mut [[f32; 3]; PATCH_PIXELS],
 ) {
+    let (size, w) = (src.size, &src.w);
     let mut k = 0;
     while k < size * size {
         let (wk, p) = (w[k], patch_index(size, k));
@@ -410,6 +364,30 @@ fn ssim_patch_backward(
             let x = a[p][c] - m.mu_a[c];
             let y = b[p][c] - m.mu_b[c];
             d_a[p][c] = wk * (g.mu_a[c] + x * g.var[c] + y * g.cov[c]);
+            c += 1;
+        }
+        k += 1;
+    }
+}
+
+/// The same for the target's pixels.
+#[inline(always)]
+fn target_backward(
+    src: &SsimSource,
+    a: &[[f32; 3]; PATCH_PIXELS],
+    b: &[[f32; 3]; PATCH_PIXELS],
+    m: &SsimMoments,
+    g: &SsimMomentGrads,
+    d_b: &mut [[f32; 3]; PATCH_PIXELS],
+) {
+    let (size, w) = (src.size, &src.w);
+    let mut k = 0;
+    while k < size * size {
+        let (wk, p) = (w[k], patch_index(size, k));
+        let mut c = 0;
+        while c < 3 {
+            let x = a[p][c] - m.mu_a[c];
+            let y = b[p][c] - m.mu_b[c];
             d_b[p][c] = wk * (g.mu_b[c] + y * g.var[c] + x * g.cov[c]);
             c += 1;
         }

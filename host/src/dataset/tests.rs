@@ -1187,19 +1187,25 @@ fn depth_registered_into_another_camera_hand_values() {
     assert_eq!(d.registered(&from, &from).data, d.data);
 }
 
-#[test]
-fn depth_camera_from_the_configuration_registers_every_frame() {
+/// A synthetic Replica-layout room of `frames` 40x30 frames (seed 0) in a temporary folder.
+fn synthetic_40x30(frames: usize) -> tempfile::TempDir {
     let dir = tempfile::tempdir().unwrap();
     crate::synth::write_synthetic(
         dir.path(),
         &crate::synth::SynthOptions {
-            frames: 3,
+            frames,
             width: 40,
             height: 30,
             seed: 0,
         },
     )
     .unwrap();
+    dir
+}
+
+#[test]
+fn depth_camera_from_the_configuration_registers_every_frame() {
+    let dir = synthetic_40x30(3);
     let plain = open(dir.path(), &LoadOptions::default()).unwrap();
     let k = plain.intrinsics();
     // Pretend the files' camera is the depth camera and the colour camera has 0.8 x its
@@ -1304,17 +1310,7 @@ fn max_width_resizes_wider_sequences_only() {
 
 #[test]
 fn replica_layout_undistorts_a_configured_distorted_camera() {
-    let dir = tempfile::tempdir().unwrap();
-    crate::synth::write_synthetic(
-        dir.path(),
-        &crate::synth::SynthOptions {
-            frames: 2,
-            width: 40,
-            height: 30,
-            seed: 0,
-        },
-    )
-    .unwrap();
+    let dir = synthetic_40x30(2);
     let plain = open(dir.path(), &LoadOptions::default()).unwrap();
     let k = plain.intrinsics();
     let dist = [0.2, -0.1, 0.001, -0.002, 0.0];
