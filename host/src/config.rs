@@ -104,6 +104,12 @@ struct WarpDef {
     w_patch: f32,
     w_center: f32,
     center_beta: f32,
+    #[serde(default = "one_u32")]
+    stride: u32,
+}
+
+fn one_u32() -> u32 {
+    1
 }
 
 /// `model.grid_kind`: "factorized" or "dense" (the core's [`GridKind`]).

@@ -748,6 +748,9 @@ fn warp_check(args: WarpCheckArgs) -> anyhow::Result<()> {
     }
     println!("{}", total.row("all"));
     println!("{}", total.basin_line());
+    if with_map {
+        println!("{}", total.sweep_line());
+    }
     Ok(())
 }
 

@@ -17,7 +17,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use himap_core::camera::{Intrinsics, Pose};
 use himap_core::field::model::{Ray, RayResult};
-use himap_core::loss::warp::{warp_pixel, PackedImages, WarpConfig};
+use himap_core::loss::warp::{warp_pixel, FrameImages, PackedImages, WarpConfig};
 use himap_core::rng::SplitMix;
 use himap_core::train::backend::Backend;
 
@@ -114,6 +114,52 @@ pub struct WarpStats {
     pub loss_gt: f64,
     pub loss_rendered: f64,
     pub depth_err: f64,
+    /// Valid pixels on plain surfaces (the grey standard deviation of their dense 11x11
+    /// neighbourhood below [`PLAIN_STD`]) and those of them whose minimum lies within 5 %.
+    pub plain: usize,
+    pub plain_within5: usize,
+    /// With a map: pixels (valid at both depths) whose rendered depth is off by
+    /// [`FAR_ERROR`] or more, and those of them where the truth scores lower.
+    pub far: usize,
+    pub far_gt_lower: usize,
+    /// With a map: the loss swept along the ray around the rendered depth (0.5x..2x); the
+    /// summed error of the sweep's minimum (|argmin - gt|) over the pixels valid at both,
+    /// and, for the confident ones (minimum below [`SWEEP_CONFIDENT`] times the loss at the
+    /// rendered depth), their count and summed errors of the map and of the sweep.
+    pub sweep_err: f64,
+    pub confident: usize,
+    pub confident_map_err: f64,
+    pub confident_sweep_err: f64,
+}
+
+/// The sweep's minimum counts as confident below this share of the loss at the rendered depth.
+pub const SWEEP_CONFIDENT: f32 = 0.7;
+
+/// A rendered depth this far from the truth (metres) counts as a gross error.
+pub const FAR_ERROR: f32 = 0.5;
+
+/// Grey-level standard deviation (colours in [0, 1]) under which a pixel's 11x11
+/// neighbourhood counts as plain.
+pub const PLAIN_STD: f32 = 0.02;
+
+/// The standard deviation of the grey level (mean of the channels) over the dense 11x11
+/// neighbourhood of `(u, v)` in frame `f` (clamped at the border).
+fn grey_std(images: &PackedImages<'_>, f: usize, u: u32, v: u32) -> f32 {
+    let (w, h) = (images.width as i32, images.height as i32);
+    let (mut s, mut s2, mut n) = (0.0f64, 0.0f64, 0.0f64);
+    for dy in -5..=5 {
+        for dx in -5..=5 {
+            let x = (u as i32 + dx).clamp(0, w - 1) as u32;
+            let y = (v as i32 + dy).clamp(0, h - 1) as u32;
+            let t = images.texel(f, x, y);
+            let g = ((t[0] + t[1] + t[2]) / 3.0) as f64;
+            s += g;
+            s2 += g * g;
+            n += 1.0;
+        }
+    }
+    let m = s / n;
+    ((s2 / n - m * m).max(0.0)).sqrt() as f32
 }
 
 impl WarpStats {
@@ -133,6 +179,30 @@ impl WarpStats {
         self.loss_gt += o.loss_gt;
         self.loss_rendered += o.loss_rendered;
         self.depth_err += o.depth_err;
+        self.plain += o.plain;
+        self.plain_within5 += o.plain_within5;
+        self.far += o.far;
+        self.far_gt_lower += o.far_gt_lower;
+        self.sweep_err += o.sweep_err;
+        self.confident += o.confident;
+        self.confident_map_err += o.confident_map_err;
+        self.confident_sweep_err += o.confident_sweep_err;
+    }
+
+    /// With a map: what a sweep of the loss around the rendered depth would give (the mean
+    /// depth error of the sweep's minimum against the map's, and for the confident pixels).
+    pub fn sweep_line(&self) -> String {
+        let n = self.both.max(1) as f64;
+        let c = self.confident.max(1) as f64;
+        format!(
+            "sweep around the map's depth: error {:.1} cm (map {:.1} cm); confident {:.1} % of \
+             pixels: map {:.1} cm, sweep {:.1} cm",
+            100.0 * self.sweep_err / n,
+            100.0 * self.depth_err / n,
+            100.0 * self.confident as f64 / n,
+            100.0 * self.confident_map_err / c,
+            100.0 * self.confident_sweep_err / c,
+        )
     }
 
     fn median_rel(&self) -> f32 {
@@ -154,7 +224,7 @@ impl WarpStats {
             }
         };
         let mut s = format!(
-            "{label:>8} {:>6} {:>6} {:>7} {:>7} {:>8.3} {:>7} {:>8.4}",
+            "{label:>8} {:>6} {:>6} {:>7} {:>7} {:>8.3} {:>7} {:>8.4} {:>6} {:>7}",
             self.sampled,
             pct(self.valid, self.sampled),
             pct(self.within5, self.valid),
@@ -162,15 +232,19 @@ impl WarpStats {
             self.median_rel(),
             pct(self.basin, self.valid),
             self.centre_residual / self.valid.max(1) as f64,
+            pct(self.plain, self.valid),
+            pct(self.plain_within5, self.plain),
         );
         if self.both > 0 {
             let n = self.both as f64;
             s += &format!(
-                " {:>7} {:>8.4} {:>8.4} {:>7.1}",
+                " {:>7} {:>8.4} {:>8.4} {:>7.1} {:>5} {:>7}",
                 pct(self.gt_lower, self.both),
                 self.loss_gt / n,
                 self.loss_rendered / n,
-                100.0 * self.depth_err / n
+                100.0 * self.depth_err / n,
+                pct(self.far, self.both),
+                pct(self.far_gt_lower, self.far),
             );
         }
         s
@@ -192,13 +266,22 @@ impl WarpStats {
     /// The table header matching [`WarpStats::row`].
     pub fn header(with_map: bool) -> String {
         let mut s = format!(
-            "{:>8} {:>6} {:>6} {:>7} {:>7} {:>8} {:>7} {:>8}",
-            "frames", "pixels", "valid%", "argmin5", "argmin10", "med_rel", "basin%", "centre"
+            "{:>8} {:>6} {:>6} {:>7} {:>7} {:>8} {:>7} {:>8} {:>6} {:>7}",
+            "frames",
+            "pixels",
+            "valid%",
+            "argmin5",
+            "argmin10",
+            "med_rel",
+            "basin%",
+            "centre",
+            "plain%",
+            "plain5"
         );
         if with_map {
             s += &format!(
-                " {:>7} {:>8} {:>8} {:>7}",
-                "gt<map%", "loss_gt", "loss_map", "dl1_cm"
+                " {:>7} {:>8} {:>8} {:>7} {:>5} {:>7}",
+                "gt<map%", "loss_gt", "loss_map", "dl1_cm", "far%", "far_gt<"
             );
         }
         s
@@ -427,6 +510,10 @@ impl Check {
         st.rel_err.push(rel);
         st.within5 += (rel <= 0.05) as usize;
         st.within10 += (rel <= 0.10) as usize;
+        if grey_std(images, src, u, v) < PLAIN_STD {
+            st.plain += 1;
+            st.plain_within5 += (rel <= 0.05) as usize;
+        }
         // The basin uses the gradients at 0.8 gt and 1.25 gt, two of the scales below.
         let (mut lo, mut hi) = (0.0f32, 0.0f32);
         for (j, &s) in BASIN_SCALES.iter().enumerate() {
@@ -456,6 +543,24 @@ impl Check {
             st.loss_gt += at_gt.loss as f64 / at_gt.valid_views as f64;
             st.loss_rendered += at_r.loss as f64 / at_r.valid_views as f64;
             st.depth_err += (d - gt).abs() as f64;
+            if (d - gt).abs() >= FAR_ERROR {
+                st.far += 1;
+                st.far_gt_lower += (at_gt.loss < at_r.loss) as usize;
+            }
+            let mut best = (at_r.loss, 1.0f32);
+            for &s in &self.scales {
+                let r = loss_at(d * s);
+                if r.valid_views >= wcfg.min_views && r.loss < best.0 {
+                    best = (r.loss, s);
+                }
+            }
+            let e = (d * best.1 - gt).abs() as f64;
+            st.sweep_err += e;
+            if best.0 < SWEEP_CONFIDENT * at_r.loss {
+                st.confident += 1;
+                st.confident_map_err += (d - gt).abs() as f64;
+                st.confident_sweep_err += e;
+            }
         }
     }
 }

@@ -457,12 +457,15 @@ pub fn synthetic_window(
 }
 
 /// A mapping iteration's loss: colour, warping loss (7x7 patches), the depth prior in the
-/// first steps (near-only in step 1) and the detached colour in step 2.
+/// first steps (near-only in step 1), the detached colour in step 2 and a dilated patch in the
+/// even steps.
 fn mapping_loss(step: u32, n: usize) -> MappingLoss {
     let mut warp = WarpConfig::dim_slam();
     warp.min_views = 2;
     warp.margin = 2.0;
     warp.half = 3;
+    // a dilated patch (samples 2 px apart) in the even steps
+    warp.stride = 1 + (step + 1) % 2;
     MappingLoss {
         lambda_color: 0.1,
         lambda_warp: 1.0,

@@ -81,6 +81,9 @@ pub const MIN_Z: f32 = 1e-4;
 /// Largest supported patch half-size (the patch storage is `PATCH x PATCH`).
 pub const MAX_HALF: u32 = (PATCH / 2) as u32;
 
+/// Largest supported patch stride ([`WarpConfig::stride`]).
+pub const MAX_STRIDE: u32 = 8;
+
 /// Read access to the colour images of the frames in the mapping window (RGB in `[0, 1]`).
 /// `frame` indexes the window (the same index as the `poses` slice of [`warp_pixel`]); every
 /// frame has the same `size() = (width, height)`, and `x < width`, `y < height` always hold
@@ -173,6 +176,11 @@ pub struct WarpConfig {
     pub w_center: f32,
     /// Threshold `β` of the centre-pixel smooth L1.
     pub center_beta: f32,
+    /// Spacing of the patch's samples in the source image (pixels, `1..=MAX_STRIDE`): 1 is
+    /// DIM-SLAM's dense patch; `s` spreads the same `(2h+1)^2` samples over `(2hs+1)^2`
+    /// pixels (a dilated patch, as DSO's sparse patterns), so that a pixel of a plain
+    /// surface sees the textured border of its region.
+    pub stride: u32,
 }
 
 impl WarpConfig {
@@ -188,6 +196,7 @@ impl WarpConfig {
             w_patch: 0.5,
             w_center: 0.1,
             center_beta: 0.1,
+            stride: 1,
         }
     }
 
@@ -196,6 +205,9 @@ impl WarpConfig {
     pub fn validate(&self) -> Result<(), Error> {
         if self.half < 1 || self.half > MAX_HALF {
             return Err(Error::InvalidConfig("warp: half must be in 1..=5"));
+        }
+        if self.stride < 1 || self.stride > MAX_STRIDE {
+            return Err(Error::InvalidConfig("warp: stride must be in 1..=8"));
         }
         let ok = |x: f32| x.is_finite() && x >= 0.0;
         if !ok(self.margin) {
@@ -433,7 +445,7 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         &pose_s,
         images,
         src,
-        (u, v, half),
+        (u, v, half, patch_stride(cfg)),
         depth,
         &mut xw,
         &mut dxw,
@@ -535,6 +547,18 @@ fn patch_half(cfg: &WarpConfig) -> i32 {
     }
 }
 
+/// The patch stride of `cfg`, clamped to `1..=MAX_STRIDE`.
+#[inline(always)]
+fn patch_stride(cfg: &WarpConfig) -> i32 {
+    if cfg.stride > MAX_STRIDE {
+        MAX_STRIDE as i32
+    } else if cfg.stride < 1 {
+        1
+    } else {
+        cfg.stride as i32
+    }
+}
+
 /// CPU only (a no-op for other images): starts loading the texels of the first valid view
 /// (bit of `mask`) at or after `from`.
 #[inline(always)]
@@ -559,7 +583,8 @@ fn prefetch_valid_from<I: FrameImages + ?Sized>(
     }
 }
 
-/// The patch around source pixel (`u`, `v`) of half size `half` on the fronto-parallel plane
+/// The patch around source pixel (`u`, `v`) of half size `half` (samples `stride` pixels
+/// apart) on the fronto-parallel plane
 /// at `depth`: its points in the world (`xw`), their derivative with respect to depth (`dxw`)
 /// and the source frame's texels (`src_patch`, the border clamped).
 #[inline(always)]
@@ -569,7 +594,7 @@ fn source_patch<I: FrameImages + ?Sized>(
     pose_s: &Pose,
     images: &I,
     src: usize,
-    (u, v, half): (u32, u32, i32),
+    (u, v, half, stride): (u32, u32, i32, i32),
     depth: f32,
     xw: &mut [[f32; 3]; PATCH_PIXELS],
     dxw: &mut [[f32; 3]; PATCH_PIXELS],
@@ -580,10 +605,10 @@ fn source_patch<I: FrameImages + ?Sized>(
     let hmax = (h - 1) as i32;
     let mut dy = -half;
     while dy <= half {
-        let py = v as i32 + dy;
+        let py = v as i32 + dy * stride;
         let mut dx = -half;
         while dx <= half {
-            let px = u as i32 + dx;
+            let px = u as i32 + dx * stride;
             let p = ((dy + MAX_HALF as i32) as usize) * PATCH + (dx + MAX_HALF as i32) as usize;
             let dir = k.direction(px as f32, py as f32);
             xw[p] = pose_s.transform([depth * dir[0], depth * dir[1], depth * dir[2]]);
@@ -862,6 +887,17 @@ mod tests {
 
     /// Renders the textured plane analytically (f64) from every pose into a packed buffer.
     fn render(k: &Intrinsics, poses: &[Pose], w: u32, h: u32) -> Vec<f32> {
+        render_with(k, poses, w, h, texture)
+    }
+
+    /// [`render`] with another texture on the plane.
+    fn render_with(
+        k: &Intrinsics,
+        poses: &[Pose],
+        w: u32,
+        h: u32,
+        texture: impl Fn(f64, f64) -> [f64; 3],
+    ) -> Vec<f32> {
         let mut data = Vec::with_capacity(poses.len() * (w * h * 3) as usize);
         for p in poses {
             let m = p.m.map(|r| r.map(|x| x as f64));
@@ -959,11 +995,12 @@ mod tests {
         };
         let cpu = CpuImages(img);
         let mut compared = 0;
-        for half in [5u32, 3] {
+        for (half, stride) in [(5u32, 1u32), (3, 1), (5, 3)] {
             let cfg = WarpConfig {
                 half,
                 min_views: 1,
                 margin: 1.0,
+                stride,
                 ..WarpConfig::dim_slam()
             };
             for src in 0..poses.len() {
@@ -1006,6 +1043,8 @@ mod tests {
         for bad in [
             WarpConfig { half: 0, ..c },
             WarpConfig { half: 6, ..c },
+            WarpConfig { stride: 0, ..c },
+            WarpConfig { stride: 9, ..c },
             WarpConfig { margin: -1.0, ..c },
             WarpConfig {
                 w_patch: f32::NAN,
@@ -1117,6 +1156,39 @@ mod tests {
         }
     }
 
+    /// A pixel in the middle of a plain square (plain for 12.8 px around it in frame 0) sees
+    /// only the plain colour through the dense 11x11 patch at every depth from 1.8 to 2.2 m
+    /// (the parallax of the 0.25 m baselines moves the warped patch by at most 1.8 px): its
+    /// loss has no minimum and its gradient is exactly zero. With the same 11x11 samples 3 px
+    /// apart the patch reaches the square's textured surroundings, and the true depth (2 m)
+    /// is the minimum again, with the gradient pointing towards it.
+    #[test]
+    fn a_dilated_patch_reaches_the_border_of_a_plain_region() {
+        let poses = scene_poses();
+        let plain = |x: f64, y: f64| {
+            if x.abs() < 0.4 && y.abs() < 0.4 {
+                [0.4, 0.5, 0.6]
+            } else {
+                texture(x, y)
+            }
+        };
+        let data = render_with(&intrinsics(), &poses, W, H, plain);
+        let dense = WarpConfig::dim_slam();
+        for d in [1.8f32, 1.9, 2.0, 2.1, 2.2] {
+            let r = run(&dense, &poses, &data, 0, 32, 24, d);
+            assert_eq!(r.valid_views, 4, "{d}");
+            assert_eq!(r.d_depth, 0.0, "{d}: {r:?}");
+        }
+        let dilated = WarpConfig { stride: 3, ..dense };
+        let at = |d: f32| run(&dilated, &poses, &data, 0, 32, 24, d);
+        let (lo, mid, hi) = (at(1.8), at(2.0), at(2.2));
+        assert!(
+            mid.loss < 0.5 * lo.loss && mid.loss < 0.5 * hi.loss,
+            "{lo:?} {mid:?} {hi:?}"
+        );
+        assert!(lo.d_depth < 0.0 && hi.d_depth > 0.0, "{lo:?} {hi:?}");
+    }
+
     /// Central finite difference of the loss on depth, in f32, step h = 1e-3 (moves the
     /// warped points by ~0.005 px). Error budget: f32 rounding of the loss (~1e-7 relative of
     /// a loss <= 1, / 2h gives ~1e-4) plus the kinks of the piecewise-linear bilinear
@@ -1142,6 +1214,8 @@ mod tests {
                 w_patch: 0.0,
                 ..dim
             },
+            // A dilated patch: 11x11 samples 2 px apart.
+            WarpConfig { stride: 2, ..dim },
         ];
         let h = 1e-3f32;
         let mut max_g = 0.0f32;
