@@ -244,7 +244,7 @@ pub fn ssim_patch_target(
 
 /// Index in the 11x11 patch of pixel `k` (row-major) of its central `size x size` region.
 #[inline(always)]
-fn patch_index(size: usize, k: usize) -> usize {
+pub(crate) fn patch_index(size: usize, k: usize) -> usize {
     let off = (PATCH - size) / 2;
     (k / size + off) * PATCH + k % size + off
 }

@@ -69,7 +69,9 @@
 //! images (measured with a throw-away harness, noisy: 140 to 200 µs).
 
 use crate::camera::{Intrinsics, Pose, PoseRead};
-use crate::loss::{smooth_l1, ssim_patch_target, SsimSource, PATCH, PATCH_PIXELS};
+use crate::loss::{
+    patch_index, smooth_l1, ssim_patch_target, SsimSource, PATCH, PATCH_PIXELS, SSIM_C1, SSIM_C2,
+};
 use crate::Error;
 
 /// The largest window (frames per call) [`warp_pixel`] handles; more are ignored.
@@ -101,7 +103,30 @@ pub trait FrameImages {
     /// all inside the image). No value changes; the default does nothing.
     #[inline(always)]
     fn prefetch_row(&self, _frame: usize, _y: u32, _x0: u32, _x1: u32) {}
+    /// CPU form only (`warp_view_lanes`): the texels of the four bilinear corners
+    /// `(x0, y0), (x1, y0), (x0, y1), (x1, y1)` of every patch point (`cells[p]` =
+    /// `[x0, y0, x1, y1]`) of `frame`, as `texels[corner][channel][point]`: the values
+    /// [`Self::texel`] gives. Images in packed form override it to convert in lanes.
+    #[inline(always)]
+    fn gather_corners(&self, frame: usize, cells: &[[u32; 4]; PATCH_PIXELS], texels: &mut Corners) {
+        for p in 0..PATCH_PIXELS {
+            let [x0, y0, x1, y1] = cells[p];
+            for (k, (x, y)) in [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
+                .into_iter()
+                .enumerate()
+            {
+                let t = self.texel(frame, x, y);
+                texels[k][0][p] = t[0];
+                texels[k][1][p] = t[1];
+                texels[k][2][p] = t[2];
+            }
+        }
+    }
 }
+
+/// The texels of the four bilinear corners of every patch point, channel-major
+/// (`[corner][channel][point]`; see [`FrameImages::gather_corners`]).
+pub type Corners = [[[f32; PATCH_PIXELS]; 3]; 4];
 
 /// Names to `images` the rows around the projected patch centre `(cu, cv)` of `frame` that
 /// the warp of a patch of half size `half` will read (a hint; see
@@ -384,14 +409,58 @@ fn warp_view_lanes<I: FrameImages + ?Sized>(
         (pu[p], pv[p], _) = k.project(x);
         (dpu[p], dpv[p]) = projection_derivative(k, x, xd);
     }
+    // The bilinear samples of `sample_bilinear` in three passes: the cells and fractions of
+    // every point (lanes), the texel loads alone (many in flight at once), then the
+    // interpolation over channel-major arrays (lanes). Each element takes the scalar form's
+    // operations in its order.
+    // (as in `sample_bilinear`: rust-gpu 0.11 does not implement `saturating_sub`.)
+    #[allow(clippy::implicit_saturating_sub)]
+    let wmax = if w >= 2 { w - 2 } else { 0 };
+    #[allow(clippy::implicit_saturating_sub)]
+    let hmax = if h >= 2 { h - 2 } else { 0 };
+    let (umax, vmax) = ((w - 1) as f32, (h - 1) as f32);
+    let mut fx = [0.0f32; PATCH_PIXELS];
+    let mut fy = [0.0f32; PATCH_PIXELS];
+    let mut in_x = [false; PATCH_PIXELS];
+    let mut in_y = [false; PATCH_PIXELS];
+    let mut cells = [[0u32; 4]; PATCH_PIXELS];
     for p in 0..PATCH_PIXELS {
-        let (val, du, dv) = sample_bilinear(images, j, w, h, pu[p], pv[p]);
-        tgt[p] = val;
-        let mut c = 0;
-        while c < 3 {
-            dtgt[p][c] = du[c] * dpu[p] + dv[c] * dpv[p];
-            c += 1;
+        let (xc, ix) = clamp_coord(pu[p], umax);
+        let (yc, iy) = clamp_coord(pv[p], vmax);
+        let x0 = (xc as u32).min(wmax);
+        let y0 = (yc as u32).min(hmax);
+        let x1 = if x0 + 1 < w { x0 + 1 } else { x0 };
+        let y1 = if y0 + 1 < h { y0 + 1 } else { y0 };
+        fx[p] = xc - x0 as f32;
+        fy[p] = yc - y0 as f32;
+        in_x[p] = ix;
+        in_y[p] = iy;
+        cells[p] = [x0, y0, x1, y1];
+    }
+    // texels[corner][channel][point], corners 00, 10, 01, 11.
+    let mut texels: Corners = [[[0.0f32; PATCH_PIXELS]; 3]; 4];
+    images.gather_corners(j, &cells, &mut texels);
+    let mut val = [[0.0f32; PATCH_PIXELS]; 3];
+    let mut dval = [[0.0f32; PATCH_PIXELS]; 3];
+    for c in 0..3 {
+        let (t00, t10, t01, t11) = (&texels[0][c], &texels[1][c], &texels[2][c], &texels[3][c]);
+        for p in 0..PATCH_PIXELS {
+            let (gx, gy) = (1.0 - fx[p], 1.0 - fy[p]);
+            let top = gx * t00[p] + fx[p] * t10[p];
+            let bot = gx * t01[p] + fx[p] * t11[p];
+            val[c][p] = gy * top + fy[p] * bot;
+            let du = if in_x[p] {
+                gy * (t10[p] - t00[p]) + fy[p] * (t11[p] - t01[p])
+            } else {
+                0.0
+            };
+            let dv = if in_y[p] { bot - top } else { 0.0 };
+            dval[c][p] = du * dpu[p] + dv * dpv[p];
         }
+    }
+    for p in 0..PATCH_PIXELS {
+        tgt[p] = [val[0][p], val[1][p], val[2][p]];
+        dtgt[p] = [dval[0][p], dval[1][p], dval[2][p]];
     }
 }
 
@@ -479,21 +548,49 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     let mut loss = 0.0f32;
     let mut d_depth = 0.0f32;
     prefetch_valid_from(images, mask, 0, &centres, half);
-    let mut j = 0;
-    while j < n {
-        if mask & (1u32 << j) == 0 {
-            j += 1;
-            continue;
+    if I::CPU && half == MAX_HALF as i32 {
+        // The CPU form: up to `LANES` valid views warped, then their pairs' losses and
+        // gradients side by side (`pair_loss_lanes`), summed in view order as below.
+        let mut tl: PatchLanes = [[[0.0; LANES]; 3]; PATCH_PIXELS];
+        let mut dl: PatchLanes = [[[0.0; LANES]; 3]; PATCH_PIXELS];
+        let mut gl: PatchLanes = [[[0.0; LANES]; 3]; PATCH_PIXELS];
+        let mut j = 0;
+        while j < n {
+            let mut lanes = 0;
+            while j < n && lanes < LANES {
+                if mask & (1u32 << j) != 0 {
+                    prefetch_valid_from(images, mask, j + 1, &centres, half);
+                    let pose_j = poses.pose(j);
+                    warp_view_lanes(images, j, k, &pose_j, &xw, &dxw, &mut tgt, &mut dtgt);
+                    for p in 0..PATCH_PIXELS {
+                        for c in 0..3 {
+                            tl[p][c][lanes] = tgt[p][c];
+                            dl[p][c][lanes] = dtgt[p][c];
+                        }
+                    }
+                    lanes += 1;
+                }
+                j += 1;
+            }
+            let pair = pair_loss_lanes(cfg, &ssim_src, &src_patch, &tl, &mut gl);
+            let d_pair = chain_lanes(&gl, &dl);
+            for l in 0..lanes {
+                loss += pair[l];
+                d_depth += d_pair[l];
+            }
         }
-        // The next valid view's texels load while this one is computed.
-        prefetch_valid_from(images, mask, j + 1, &centres, half);
-        let pose_j = poses.pose(j);
+    } else {
+        let mut j = 0;
+        while j < n {
+            if mask & (1u32 << j) == 0 {
+                j += 1;
+                continue;
+            }
+            // The next valid view's texels load while this one is computed.
+            prefetch_valid_from(images, mask, j + 1, &centres, half);
+            let pose_j = poses.pose(j);
 
-        // Warped patch and its derivative with respect to depth.
-        if I::CPU && half == MAX_HALF as i32 {
-            warp_view_lanes(images, j, k, &pose_j, &xw, &dxw, &mut tgt, &mut dtgt);
-            g = [[0.0f32; 3]; PATCH_PIXELS];
-        } else {
+            // Warped patch and its derivative with respect to depth.
             warp_view(
                 images,
                 j,
@@ -506,12 +603,12 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
                 &mut dtgt,
                 &mut g,
             );
-        }
 
-        let pair = pair_loss(cfg, &ssim_src, &src_patch, &tgt, &mut g, &mut d_b);
-        loss += pair;
-        d_depth += chain_to_depth((lo, hi), &g, &dtgt);
-        j += 1;
+            let pair = pair_loss(cfg, &ssim_src, &src_patch, &tgt, &mut g, &mut d_b);
+            loss += pair;
+            d_depth += chain_to_depth((lo, hi), &g, &dtgt);
+            j += 1;
+        }
     }
 
     WarpResult {
@@ -779,6 +876,175 @@ fn pair_loss(
     pair
 }
 
+/// Views whose pairs the CPU form of [`warp_pixel`] computes side by side.
+const LANES: usize = 8;
+
+/// A patch per lane: `[pixel][channel][lane]`.
+type PatchLanes = [[[f32; LANES]; 3]; PATCH_PIXELS];
+
+/// [`pair_loss`] for the targets of `LANES` views at once (lane `l` of `tgt`), as a CPU runs
+/// it: every lane takes the operations of `pair_loss` (via `ssim_patch_target` and
+/// `add_scaled_patch`, from a zero cotangent) in their order, so the pair losses and the
+/// cotangents `g` are the same bits; the window-weighted sums run in SIMD lanes across the
+/// views instead of one dependent chain per view.
+// Lane loops index several arrays at once.
+#[allow(clippy::needless_range_loop)]
+#[inline(never)]
+fn pair_loss_lanes(
+    cfg: &WarpConfig,
+    (src11, src7): &(SsimSource, SsimSource),
+    src_patch: &Patch,
+    tgt: &PatchLanes,
+    g: &mut PatchLanes,
+) -> [f32; LANES] {
+    let c11 = cfg.w_patch * cfg.w_patch11;
+    let c7 = cfg.w_patch * cfg.w_patch7;
+    let mut patch_term = [0.0f32; LANES];
+    *g = [[[0.0; LANES]; 3]; PATCH_PIXELS];
+    if c11 != 0.0 {
+        ssim_term_lanes(
+            src11,
+            src_patch,
+            tgt,
+            (cfg.w_patch11, -0.5 * c11),
+            &mut patch_term,
+            g,
+        );
+    }
+    if c7 != 0.0 {
+        ssim_term_lanes(
+            src7,
+            src_patch,
+            tgt,
+            (cfg.w_patch7, -0.5 * c7),
+            &mut patch_term,
+            g,
+        );
+    }
+    let mut pair = [0.0f32; LANES];
+    for l in 0..LANES {
+        pair[l] = cfg.w_patch * patch_term[l];
+    }
+    if cfg.w_center != 0.0 {
+        let centre = PATCH_PIXELS / 2;
+        for l in 0..LANES {
+            let mut center = 0.0f32;
+            for c in 0..3 {
+                let (v, dv) = smooth_l1(src_patch[centre][c] - tgt[centre][c][l], cfg.center_beta);
+                center += v;
+                g[centre][c][l] += -cfg.w_center * dv;
+            }
+            pair[l] += cfg.w_center * center;
+        }
+    }
+    pair
+}
+
+/// One SSIM term of [`pair_loss_lanes`]: `ssim_patch_target` of every lane's target against
+/// the source (`src`, `a`), its `0.5 sum_c (1 - SSIM_c)` added to `patch_term` with weight
+/// `w`, and `k` times its target gradient added to `g` over the whole patch (zero outside
+/// the region), as `add_scaled_patch` does.
+// Lane loops index several arrays at once.
+#[allow(clippy::needless_range_loop)]
+#[inline(always)]
+fn ssim_term_lanes(
+    src: &SsimSource,
+    a: &Patch,
+    b: &PatchLanes,
+    (w, k): (f32, f32),
+    patch_term: &mut [f32; LANES],
+    g: &mut PatchLanes,
+) {
+    let (size, win) = (src.size, &src.w);
+    let mut mu_b = [[0.0f32; LANES]; 3];
+    for i in 0..size * size {
+        let (wk, p) = (win[i], patch_index(size, i));
+        for c in 0..3 {
+            for l in 0..LANES {
+                mu_b[c][l] += wk * b[p][c][l];
+            }
+        }
+    }
+    let mut var_b = [[0.0f32; LANES]; 3];
+    let mut cov = [[0.0f32; LANES]; 3];
+    for i in 0..size * size {
+        let (wk, p) = (win[i], patch_index(size, i));
+        for c in 0..3 {
+            let x = a[p][c] - src.mu[c];
+            for l in 0..LANES {
+                let y = b[p][c][l] - mu_b[c][l];
+                var_b[c][l] += wk * (y * y);
+                cov[c][l] += wk * (x * y);
+            }
+        }
+    }
+    // SSIM per channel and lane and its derivatives with respect to the target's moments
+    // (`ssim_and_moment_grads`).
+    let mut ssim = [[0.0f32; LANES]; 3];
+    let mut g_mu = [[0.0f32; LANES]; 3];
+    let mut g_var = [[0.0f32; LANES]; 3];
+    let mut g_cov = [[0.0f32; LANES]; 3];
+    for c in 0..3 {
+        let ma = src.mu[c];
+        for l in 0..LANES {
+            let mb = mu_b[c][l];
+            let a1 = 2.0 * (ma * mb) + SSIM_C1;
+            let a2 = 2.0 * cov[c][l] + SSIM_C2;
+            let b1 = ma * ma + mb * mb + SSIM_C1;
+            let b2 = src.var[c] + var_b[c][l] + SSIM_C2;
+            let den = b1 * b2;
+            let s = a1 * a2 / den;
+            ssim[c][l] = s;
+            let d_a1 = a2 / den;
+            let d_a2 = a1 / den;
+            let d_b1 = -s / b1;
+            let d_b2 = -s / b2;
+            g_mu[c][l] = 2.0 * (ma * d_a1 + mb * d_b1);
+            g_var[c][l] = 2.0 * d_b2;
+            g_cov[c][l] = 2.0 * d_a2;
+        }
+    }
+    for l in 0..LANES {
+        let t = 0.5 * ((1.0 - ssim[0][l]) + (1.0 - ssim[1][l]) + (1.0 - ssim[2][l]));
+        patch_term[l] += w * t;
+    }
+    // The target gradient (`target_backward`; zero outside the region) times `k`, into `g`.
+    let mut d_b: PatchLanes = [[[0.0; LANES]; 3]; PATCH_PIXELS];
+    for i in 0..size * size {
+        let (wk, p) = (win[i], patch_index(size, i));
+        for c in 0..3 {
+            let x = a[p][c] - src.mu[c];
+            for l in 0..LANES {
+                let y = b[p][c][l] - mu_b[c][l];
+                d_b[p][c][l] = wk * (g_mu[c][l] + y * g_var[c][l] + x * g_cov[c][l]);
+            }
+        }
+    }
+    for p in 0..PATCH_PIXELS {
+        for c in 0..3 {
+            for l in 0..LANES {
+                g[p][c][l] += k * d_b[p][c][l];
+            }
+        }
+    }
+}
+
+/// [`chain_to_depth`] of the full patch for every lane.
+// Lane loops index several arrays at once.
+#[allow(clippy::needless_range_loop)]
+#[inline(always)]
+fn chain_lanes(g: &PatchLanes, dtgt: &PatchLanes) -> [f32; LANES] {
+    let mut d = [0.0f32; LANES];
+    for p in 0..PATCH_PIXELS {
+        for c in 0..3 {
+            for l in 0..LANES {
+                d[l] += g[p][c][l] * dtgt[p][c][l];
+            }
+        }
+    }
+    d
+}
+
 /// `g += k * d` over the whole patch storage.
 #[inline(always)]
 fn add_scaled_patch(g: &mut Patch, k: f32, d: &Patch) {
@@ -1022,6 +1288,67 @@ mod tests {
             }
         }
         assert!(compared > 1000, "only {compared} pixels had valid views");
+
+        // A window of 12 frames: up to 11 valid views, i.e. a full group of `LANES` views and
+        // a partial one, and the weight variants whose terms are skipped.
+        let mut poses = scene_poses();
+        for i in 1..8 {
+            let f = i as f64;
+            poses.push(pose(
+                0.3 * f,
+                -0.4 * f,
+                0.2 * f,
+                [0.03 * f, -0.02 * f, 0.01 * f],
+            ));
+        }
+        let data = render(&k, &poses, W, H);
+        let img = PackedImages {
+            width: W,
+            height: H,
+            data: &data,
+        };
+        let cpu = CpuImages(img);
+        let base = WarpConfig {
+            min_views: 1,
+            margin: 1.0,
+            ..WarpConfig::dim_slam()
+        };
+        let mut most = 0;
+        for cfg in [
+            base,
+            WarpConfig {
+                w_patch11: 0.0,
+                ..base
+            },
+            WarpConfig {
+                w_patch7: 0.0,
+                w_center: 0.0,
+                ..base
+            },
+            WarpConfig {
+                w_patch: 0.0,
+                ..base
+            },
+        ] {
+            for src in [0, 3, 9] {
+                for v in (0..H).step_by(5) {
+                    for u in (0..W).step_by(5) {
+                        for d in [0.7f32, 1.9, 2.0, 2.3] {
+                            let n = poses.len();
+                            let a = warp_pixel(&cfg, &k, &poses[..], n, src, u, v, d, &img);
+                            let b = warp_pixel(&cfg, &k, &poses[..], n, src, u, v, d, &cpu);
+                            assert_eq!(
+                                (a.loss.to_bits(), a.d_depth.to_bits(), a.valid_views),
+                                (b.loss.to_bits(), b.d_depth.to_bits(), b.valid_views),
+                                "{cfg:?} src {src} ({u}, {v}) depth {d}"
+                            );
+                            most = most.max(a.valid_views);
+                        }
+                    }
+                }
+            }
+        }
+        assert!(most > LANES as u32, "at most {most} valid views");
     }
 
     #[test]

@@ -14,7 +14,10 @@ use crate::field::model::{
 };
 use crate::field::render::RayOutput;
 use crate::loss::planar::{planarity, PlanarConfig};
-use crate::loss::warp::{warp_pixel, warp_view_count, FrameImages, WarpConfig, MAX_WINDOW};
+use crate::loss::warp::{
+    warp_pixel, warp_view_count, Corners, FrameImages, WarpConfig, MAX_WINDOW,
+};
+use crate::loss::PATCH_PIXELS;
 use crate::ParamRead;
 
 /// Packs an RGB colour in [0, 1] into RGBA8 (alpha 255), rounding to nearest.
@@ -41,13 +44,15 @@ pub fn pack_rgba8(rgb: [f32; 3]) -> u32 {
 /// rounding on every device) rather than a division (real GPUs may be 2.5 ULP off).
 #[inline(always)]
 pub fn unpack_rgba8(p: u32) -> [f32; 3] {
-    const INV: f32 = 1.0 / 255.0;
     [
-        (p & 0xff) as f32 * INV,
-        ((p >> 8) & 0xff) as f32 * INV,
-        ((p >> 16) & 0xff) as f32 * INV,
+        (p & 0xff) as f32 * RGBA8_INV,
+        ((p >> 8) & 0xff) as f32 * RGBA8_INV,
+        ((p >> 16) & 0xff) as f32 * RGBA8_INV,
     ]
 }
+
+/// The scale of [`unpack_rgba8`]: a byte `b` is the colour `b as f32 * RGBA8_INV`.
+const RGBA8_INV: f32 = 1.0 / 255.0;
 
 /// The frames of a mapping window, read from slot storage: window frame `i` lives in slot
 /// `slots[i]` of `pixels` (slot-major, then row-major RGBA8).
@@ -114,6 +119,28 @@ impl<P: SlotPixels + ?Sized> FrameImages for WindowImages<'_, P> {
     fn prefetch_row(&self, frame: usize, y: u32, x0: u32, x1: u32) {
         self.pixels.prefetch(self.index(frame, x0, y));
         self.pixels.prefetch(self.index(frame, x1, y));
+    }
+
+    /// The packed words first (nothing but loads, many in flight), then [`unpack_rgba8`]'s
+    /// conversion over whole channel rows (SIMD lanes; the same operations per value).
+    #[inline(always)]
+    fn gather_corners(&self, frame: usize, cells: &[[u32; 4]; PATCH_PIXELS], texels: &mut Corners) {
+        let mut words = [[0u32; PATCH_PIXELS]; 4];
+        for p in 0..PATCH_PIXELS {
+            let [x0, y0, x1, y1] = cells[p];
+            words[0][p] = self.pixels.pixel(self.index(frame, x0, y0));
+            words[1][p] = self.pixels.pixel(self.index(frame, x1, y0));
+            words[2][p] = self.pixels.pixel(self.index(frame, x0, y1));
+            words[3][p] = self.pixels.pixel(self.index(frame, x1, y1));
+        }
+        for (corner, words) in texels.iter_mut().zip(&words) {
+            for (c, channel) in corner.iter_mut().enumerate() {
+                let shift = 8 * c as u32;
+                for (t, &w) in channel.iter_mut().zip(words) {
+                    *t = ((w >> shift) & 0xff) as f32 * RGBA8_INV;
+                }
+            }
+        }
     }
 }
 
@@ -518,6 +545,50 @@ mod tests {
         assert_eq!(imgs.texel(1, 1, 2), [51.0 * inv, 102.0 * inv, 255.0 * inv]);
         assert!((imgs.texel(1, 1, 2)[0] - 0.2).abs() < 1e-6);
         assert_eq!(imgs.texel(0, 1, 2), [0.0, 0.0, 0.0]);
+    }
+
+    /// The packed images' corner gather (words first, the conversion in lanes) gives
+    /// [`FrameImages::texel`]'s values for every corner, channel and point, in every slot.
+    #[test]
+    fn corner_gather_equals_the_texels() {
+        let (w, h) = (13u32, 7u32);
+        let mut rng = crate::rng::SplitMix::new(5);
+        let px: std::vec::Vec<u32> = (0..w * h * 3)
+            .map(|_| (rng.unit() * u32::MAX as f32) as u32 ^ rng.below(1 << 20))
+            .collect();
+        let mut slots = [0u32; MAX_WINDOW];
+        slots[0] = 2;
+        slots[1] = 0;
+        let imgs = WindowImages {
+            width: w,
+            height: h,
+            slots,
+            pixels: &px[..],
+        };
+        for frame in 0..2 {
+            let mut cells = [[0u32; 4]; PATCH_PIXELS];
+            for c in cells.iter_mut() {
+                let (x0, y0) = (rng.below(w - 1), rng.below(h - 1));
+                *c = [x0, y0, x0 + 1, y0 + 1];
+            }
+            let mut got: Corners = [[[0.0; PATCH_PIXELS]; 3]; 4];
+            imgs.gather_corners(frame, &cells, &mut got);
+            for (p, &[x0, y0, x1, y1]) in cells.iter().enumerate() {
+                for (k, (x, y)) in [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
+                    .into_iter()
+                    .enumerate()
+                {
+                    let t = imgs.texel(frame, x, y);
+                    for c in 0..3 {
+                        assert_eq!(
+                            got[k][c][p].to_bits(),
+                            t[c].to_bits(),
+                            "{frame} {p} {k} {c}"
+                        );
+                    }
+                }
+            }
+        }
     }
 
     /// A one-frame window over `px` (`w x h`, slot 0) seen by the identity camera with focal
