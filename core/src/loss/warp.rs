@@ -385,7 +385,8 @@ fn projection_derivative(k: &Intrinsics, x: [f32; 3], xd: [f32; 3]) -> (f32, f32
 /// structure-of-arrays copies that vectorise (the divisions 8 or 16 lanes at a time), then the
 /// bilinear samples from the precomputed coordinates (independent loads the CPU overlaps).
 /// Every element takes the operations of the scalar loop in the same order (`z > MIN_Z` as a
-/// select), so `tgt` and `dtgt` are the same bits (tested against the scalar form).
+/// select), so the warped patch and its depth derivative, written to lane `lane` of `tgt`
+/// and `dtgt`, are the same bits (tested against the scalar form).
 #[allow(clippy::too_many_arguments)]
 #[inline(never)]
 fn warp_view_lanes<I: FrameImages + ?Sized>(
@@ -395,8 +396,7 @@ fn warp_view_lanes<I: FrameImages + ?Sized>(
     pose_j: &Pose,
     xw: &[[f32; 3]; PATCH_PIXELS],
     dxw: &[[f32; 3]; PATCH_PIXELS],
-    tgt: &mut Patch,
-    dtgt: &mut Patch,
+    (tgt, dtgt, lane): (&mut PatchLanes, &mut PatchLanes, usize),
 ) {
     let (w, h) = images.size();
     let mut pu = [0.0f32; PATCH_PIXELS];
@@ -459,8 +459,10 @@ fn warp_view_lanes<I: FrameImages + ?Sized>(
         }
     }
     for p in 0..PATCH_PIXELS {
-        tgt[p] = [val[0][p], val[1][p], val[2][p]];
-        dtgt[p] = [dval[0][p], dval[1][p], dval[2][p]];
+        for c in 0..3 {
+            tgt[p][c][lane] = val[c][p];
+            dtgt[p][c][lane] = dval[c][p];
+        }
     }
 }
 
@@ -561,13 +563,8 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
                 if mask & (1u32 << j) != 0 {
                     prefetch_valid_from(images, mask, j + 1, &centres, half);
                     let pose_j = poses.pose(j);
-                    warp_view_lanes(images, j, k, &pose_j, &xw, &dxw, &mut tgt, &mut dtgt);
-                    for p in 0..PATCH_PIXELS {
-                        for c in 0..3 {
-                            tl[p][c][lanes] = tgt[p][c];
-                            dl[p][c][lanes] = dtgt[p][c];
-                        }
-                    }
+                    let out = (&mut tl, &mut dl, lanes);
+                    warp_view_lanes(images, j, k, &pose_j, &xw, &dxw, out);
                     lanes += 1;
                 }
                 j += 1;
@@ -1008,22 +1005,18 @@ fn ssim_term_lanes(
         let t = 0.5 * ((1.0 - ssim[0][l]) + (1.0 - ssim[1][l]) + (1.0 - ssim[2][l]));
         patch_term[l] += w * t;
     }
-    // The target gradient (`target_backward`; zero outside the region) times `k`, into `g`.
-    let mut d_b: PatchLanes = [[[0.0; LANES]; 3]; PATCH_PIXELS];
+    // The target gradient (`target_backward`) times `k`, into `g`. Outside the region
+    // `add_scaled_patch` adds `k * 0`, which is `-0` (`k < 0`: the weights are validated
+    // `>= 0` and a zero weight skips the term), and `x + -0` is `x` for every `x`: only the
+    // region's pixels change.
     for i in 0..size * size {
         let (wk, p) = (win[i], patch_index(size, i));
         for c in 0..3 {
             let x = a[p][c] - src.mu[c];
             for l in 0..LANES {
                 let y = b[p][c][l] - mu_b[c][l];
-                d_b[p][c][l] = wk * (g_mu[c][l] + y * g_var[c][l] + x * g_cov[c][l]);
-            }
-        }
-    }
-    for p in 0..PATCH_PIXELS {
-        for c in 0..3 {
-            for l in 0..LANES {
-                g[p][c][l] += k * d_b[p][c][l];
+                let d = wk * (g_mu[c][l] + y * g_var[c][l] + x * g_cov[c][l]);
+                g[p][c][l] += k * d;
             }
         }
     }
