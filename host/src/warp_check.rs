@@ -492,20 +492,25 @@ impl Check {
     ) {
         let (wcfg, k, n) = (&self.wcfg, &self.k, self.window);
         let loss_at = |d: f32| warp_pixel(wcfg, k, poses, n, src, u, v, d, images);
+        // The lowest loss (and its scale) over `d` times the sweep's scales below `start`;
+        // a depth where too few views are valid scores 0: not a minimum to take.
+        let sweep = |d: f32, start: f32| {
+            let mut best = (start, 1.0f32);
+            for &s in &self.scales {
+                let r = loss_at(d * s);
+                if r.valid_views >= wcfg.min_views && r.loss < best.0 {
+                    best = (r.loss, s);
+                }
+            }
+            best
+        };
         st.sampled += 1;
         let at_gt = loss_at(gt);
         if at_gt.valid_views < wcfg.min_views {
             return;
         }
         st.valid += 1;
-        let mut best = (f32::INFINITY, 1.0f32);
-        for &s in &self.scales {
-            let r = loss_at(gt * s);
-            // A depth where too few views are valid scores 0: not a minimum to take.
-            if r.valid_views >= wcfg.min_views && r.loss < best.0 {
-                best = (r.loss, s);
-            }
-        }
+        let best = sweep(gt, f32::INFINITY);
         let rel = (best.1 - 1.0).abs();
         st.rel_err.push(rel);
         st.within5 += (rel <= 0.05) as usize;
@@ -547,13 +552,7 @@ impl Check {
                 st.far += 1;
                 st.far_gt_lower += (at_gt.loss < at_r.loss) as usize;
             }
-            let mut best = (at_r.loss, 1.0f32);
-            for &s in &self.scales {
-                let r = loss_at(d * s);
-                if r.valid_views >= wcfg.min_views && r.loss < best.0 {
-                    best = (r.loss, s);
-                }
-            }
+            let best = sweep(d, at_r.loss);
             let e = (d * best.1 - gt).abs() as f64;
             st.sweep_err += e;
             if best.0 < SWEEP_CONFIDENT * at_r.loss {

@@ -322,30 +322,80 @@ fn ssim_and_moment_grads(m: &SsimMoments) -> ([f32; 3], SsimMomentGrads) {
     };
     let mut c = 0;
     while c < 3 {
-        let ma = m.mu_a[c];
-        let mb = m.mu_b[c];
-        let a1 = 2.0 * (ma * mb) + SSIM_C1;
-        let a2 = 2.0 * m.cov[c] + SSIM_C2;
-        let b1 = ma * ma + mb * mb + SSIM_C1;
-        let b2 = m.var_a[c] + m.var_b[c] + SSIM_C2;
-        let den = b1 * b2;
-        let s = a1 * a2 / den;
+        let (s, ga, gb) = ssim_channel(m.mu_a[c], m.mu_b[c], m.var_a[c], m.var_b[c], m.cov[c]);
         ssim[c] = s;
-        let d_a1 = a2 / den;
-        let d_a2 = a1 / den;
-        let d_b1 = -s / b1;
-        let d_b2 = -s / b2;
-        g.mu_a[c] = 2.0 * (mb * d_a1 + ma * d_b1);
-        g.mu_b[c] = 2.0 * (ma * d_a1 + mb * d_b1);
-        g.var[c] = 2.0 * d_b2;
-        g.cov[c] = 2.0 * d_a2;
+        g.mu_a[c] = ga;
+        g.mu_b[c] = gb[0];
+        g.var[c] = gb[1];
+        g.cov[c] = gb[2];
         c += 1;
     }
     (ssim, g)
 }
 
-/// The moments' gradients pushed back to the source's pixels of the used region (written,
-/// not accumulated).
+/// One channel's SSIM from the window-weighted means `ma`, `mb`, the variances and the
+/// covariance, with its derivatives: `(SSIM, d/d mu_a, [d/d mu_b, d/d var_a = d/d var_b,
+/// d/d cov])`.
+#[inline(always)]
+pub(crate) fn ssim_channel(
+    ma: f32,
+    mb: f32,
+    var_a: f32,
+    var_b: f32,
+    cov: f32,
+) -> (f32, f32, [f32; 3]) {
+    let a1 = 2.0 * (ma * mb) + SSIM_C1;
+    let a2 = 2.0 * cov + SSIM_C2;
+    let b1 = ma * ma + mb * mb + SSIM_C1;
+    let b2 = var_a + var_b + SSIM_C2;
+    let den = b1 * b2;
+    let s = a1 * a2 / den;
+    let d_a1 = a2 / den;
+    let d_a2 = a1 / den;
+    let d_b1 = -s / b1;
+    let d_b2 = -s / b2;
+    (
+        s,
+        2.0 * (mb * d_a1 + ma * d_b1),
+        [2.0 * (ma * d_a1 + mb * d_b1), 2.0 * d_b2, 2.0 * d_a2],
+    )
+}
+
+/// One pixel's SSIM gradient on one side of the comparison: the window weight `wk` times
+/// the side's mean gradient `g_mu`, plus its own deviation from its mean times the variance
+/// gradient, plus the other side's deviation times the covariance gradient.
+#[inline(always)]
+pub(crate) fn side_grad(wk: f32, g_mu: f32, own: f32, other: f32, g_var: f32, g_cov: f32) -> f32 {
+    wk * (g_mu + own * g_var + other * g_cov)
+}
+
+/// The moments' gradients pushed back to one side's pixels of the used region (written,
+/// not accumulated): `own` (the source `a` or the target `b`) with its mean and mean
+/// gradient, `other` the other patch with its mean.
+#[inline(always)]
+fn side_backward(
+    src: &SsimSource,
+    (own, mu_own, g_own): (&[[f32; 3]; PATCH_PIXELS], &[f32; 3], &[f32; 3]),
+    (other, mu_other): (&[[f32; 3]; PATCH_PIXELS], &[f32; 3]),
+    g: &SsimMomentGrads,
+    d: &mut [[f32; 3]; PATCH_PIXELS],
+) {
+    let (size, w) = (src.size, &src.w);
+    let mut k = 0;
+    while k < size * size {
+        let (wk, p) = (w[k], patch_index(size, k));
+        let mut c = 0;
+        while c < 3 {
+            let x = own[p][c] - mu_own[c];
+            let y = other[p][c] - mu_other[c];
+            d[p][c] = side_grad(wk, g_own[c], x, y, g.var[c], g.cov[c]);
+            c += 1;
+        }
+        k += 1;
+    }
+}
+
+/// [`side_backward`] for the source's pixels.
 #[inline(always)]
 fn source_backward(
     src: &SsimSource,
@@ -355,22 +405,10 @@ fn source_backward(
     g: &SsimMomentGrads,
     d_a: &mut [[f32; 3]; PATCH_PIXELS],
 ) {
-    let (size, w) = (src.size, &src.w);
-    let mut k = 0;
-    while k < size * size {
-        let (wk, p) = (w[k], patch_index(size, k));
-        let mut c = 0;
-        while c < 3 {
-            let x = a[p][c] - m.mu_a[c];
-            let y = b[p][c] - m.mu_b[c];
-            d_a[p][c] = wk * (g.mu_a[c] + x * g.var[c] + y * g.cov[c]);
-            c += 1;
-        }
-        k += 1;
-    }
+    side_backward(src, (a, &m.mu_a, &g.mu_a), (b, &m.mu_b), g, d_a);
 }
 
-/// The same for the target's pixels.
+/// [`side_backward`] for the target's pixels.
 #[inline(always)]
 fn target_backward(
     src: &SsimSource,
@@ -380,19 +418,7 @@ fn target_backward(
     g: &SsimMomentGrads,
     d_b: &mut [[f32; 3]; PATCH_PIXELS],
 ) {
-    let (size, w) = (src.size, &src.w);
-    let mut k = 0;
-    while k < size * size {
-        let (wk, p) = (w[k], patch_index(size, k));
-        let mut c = 0;
-        while c < 3 {
-            let x = a[p][c] - m.mu_a[c];
-            let y = b[p][c] - m.mu_b[c];
-            d_b[p][c] = wk * (g.mu_b[c] + y * g.var[c] + x * g.cov[c]);
-            c += 1;
-        }
-        k += 1;
-    }
+    side_backward(src, (b, &m.mu_b, &g.mu_b), (a, &m.mu_a), g, d_b);
 }
 
 #[cfg(test)]

@@ -70,7 +70,8 @@
 
 use crate::camera::{Intrinsics, Pose, PoseRead};
 use crate::loss::{
-    patch_index, smooth_l1, ssim_patch_target, SsimSource, PATCH, PATCH_PIXELS, SSIM_C1, SSIM_C2,
+    patch_index, side_grad, smooth_l1, ssim_channel, ssim_patch_target, SsimSource, PATCH,
+    PATCH_PIXELS,
 };
 use crate::Error;
 
@@ -535,12 +536,6 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         };
     }
 
-    let mut tgt: Patch = [[0.0f32; 3]; PATCH_PIXELS];
-    let mut dtgt: Patch = [[0.0f32; 3]; PATCH_PIXELS];
-    let mut g: Patch = [[0.0f32; 3]; PATCH_PIXELS];
-    let mut d_b: Patch = [[0.0f32; 3]; PATCH_PIXELS];
-    let lo = (MAX_HALF as i32 - half) as usize;
-    let hi = lo + side;
     // The source patch's side of both SSIM terms, shared by every pair.
     let ssim_src = (
         SsimSource::new(side, &src_patch),
@@ -577,6 +572,12 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
             }
         }
     } else {
+        let mut tgt: Patch = [[0.0f32; 3]; PATCH_PIXELS];
+        let mut dtgt: Patch = [[0.0f32; 3]; PATCH_PIXELS];
+        let mut g: Patch = [[0.0f32; 3]; PATCH_PIXELS];
+        let mut d_b: Patch = [[0.0f32; 3]; PATCH_PIXELS];
+        let lo = (MAX_HALF as i32 - half) as usize;
+        let hi = lo + side;
         let mut j = 0;
         while j < n {
             if mask & (1u32 << j) == 0 {
@@ -629,28 +630,28 @@ fn window_len(n_frames: usize, poses: usize) -> usize {
     n
 }
 
+/// `v` clamped to `1..=max`.
+#[inline(always)]
+fn clamp_from_one(v: u32, max: u32) -> i32 {
+    if v > max {
+        max as i32
+    } else if v < 1 {
+        1
+    } else {
+        v as i32
+    }
+}
+
 /// The patch half size of `cfg`, clamped to `1..=MAX_HALF`.
 #[inline(always)]
 fn patch_half(cfg: &WarpConfig) -> i32 {
-    if cfg.half > MAX_HALF {
-        MAX_HALF as i32
-    } else if cfg.half < 1 {
-        1
-    } else {
-        cfg.half as i32
-    }
+    clamp_from_one(cfg.half, MAX_HALF)
 }
 
 /// The patch stride of `cfg`, clamped to `1..=MAX_STRIDE`.
 #[inline(always)]
 fn patch_stride(cfg: &WarpConfig) -> i32 {
-    if cfg.stride > MAX_STRIDE {
-        MAX_STRIDE as i32
-    } else if cfg.stride < 1 {
-        1
-    } else {
-        cfg.stride as i32
-    }
+    clamp_from_one(cfg.stride, MAX_STRIDE)
 }
 
 /// CPU only (a no-op for other images): starts loading the texels of the first valid view
@@ -982,23 +983,11 @@ fn ssim_term_lanes(
     let mut g_var = [[0.0f32; LANES]; 3];
     let mut g_cov = [[0.0f32; LANES]; 3];
     for c in 0..3 {
-        let ma = src.mu[c];
         for l in 0..LANES {
-            let mb = mu_b[c][l];
-            let a1 = 2.0 * (ma * mb) + SSIM_C1;
-            let a2 = 2.0 * cov[c][l] + SSIM_C2;
-            let b1 = ma * ma + mb * mb + SSIM_C1;
-            let b2 = src.var[c] + var_b[c][l] + SSIM_C2;
-            let den = b1 * b2;
-            let s = a1 * a2 / den;
+            let (s, _, gb) =
+                ssim_channel(src.mu[c], mu_b[c][l], src.var[c], var_b[c][l], cov[c][l]);
             ssim[c][l] = s;
-            let d_a1 = a2 / den;
-            let d_a2 = a1 / den;
-            let d_b1 = -s / b1;
-            let d_b2 = -s / b2;
-            g_mu[c][l] = 2.0 * (ma * d_a1 + mb * d_b1);
-            g_var[c][l] = 2.0 * d_b2;
-            g_cov[c][l] = 2.0 * d_a2;
+            [g_mu[c][l], g_var[c][l], g_cov[c][l]] = gb;
         }
     }
     for l in 0..LANES {
@@ -1015,7 +1004,7 @@ fn ssim_term_lanes(
             let x = a[p][c] - src.mu[c];
             for l in 0..LANES {
                 let y = b[p][c][l] - mu_b[c][l];
-                let d = wk * (g_mu[c][l] + y * g_var[c][l] + x * g_cov[c][l]);
+                let d = side_grad(wk, g_mu[c][l], y, x, g_var[c][l], g_cov[c][l]);
                 g[p][c][l] += k * d;
             }
         }
