@@ -1221,6 +1221,30 @@ mod tests {
         }
     }
 
+    /// `warp_pixel` of one pixel over the plain images and over their CPU form: asserts the
+    /// same loss, depth gradient and view count bit for bit, and returns the view count.
+    #[allow(clippy::too_many_arguments)]
+    fn same_bits(
+        cfg: &WarpConfig,
+        k: &Intrinsics,
+        poses: &[Pose],
+        src: usize,
+        (u, v): (u32, u32),
+        d: f32,
+        img: &PackedImages<'_>,
+        cpu: &CpuImages<'_>,
+    ) -> u32 {
+        let n = poses.len();
+        let a = warp_pixel(cfg, k, poses, n, src, u, v, d, img);
+        let b = warp_pixel(cfg, k, poses, n, src, u, v, d, cpu);
+        assert_eq!(
+            (a.loss.to_bits(), a.d_depth.to_bits(), a.valid_views),
+            (b.loss.to_bits(), b.d_depth.to_bits(), b.valid_views),
+            "{cfg:?} src {src} ({u}, {v}) depth {d}"
+        );
+        a.valid_views
+    }
+
     /// The CPU form of the patch stage gives the scalar form's bits: every source frame, a
     /// grid of pixels (borders and margins included), depths from behind the cameras' reach to
     /// far past the plane, NaN, the full patch and a smaller one (which keeps the scalar loop).
@@ -1255,15 +1279,8 @@ mod tests {
                 for v in (0..H).step_by(3) {
                     for u in (0..W).step_by(3) {
                         for d in [0.05f32, 0.7, 1.9, 2.0, 2.3, 9.0, f32::NAN] {
-                            let n = poses.len();
-                            let a = warp_pixel(&cfg, &k, &poses[..], n, src, u, v, d, &img);
-                            let b = warp_pixel(&cfg, &k, &poses[..], n, src, u, v, d, &cpu);
-                            assert_eq!(
-                                (a.loss.to_bits(), a.d_depth.to_bits(), a.valid_views),
-                                (b.loss.to_bits(), b.d_depth.to_bits(), b.valid_views),
-                                "half {half} src {src} ({u}, {v}) depth {d}"
-                            );
-                            compared += (a.valid_views > 0) as usize;
+                            let views = same_bits(&cfg, &k, &poses, src, (u, v), d, &img, &cpu);
+                            compared += (views > 0) as usize;
                         }
                     }
                 }
@@ -1316,15 +1333,8 @@ mod tests {
                 for v in (0..H).step_by(5) {
                     for u in (0..W).step_by(5) {
                         for d in [0.7f32, 1.9, 2.0, 2.3] {
-                            let n = poses.len();
-                            let a = warp_pixel(&cfg, &k, &poses[..], n, src, u, v, d, &img);
-                            let b = warp_pixel(&cfg, &k, &poses[..], n, src, u, v, d, &cpu);
-                            assert_eq!(
-                                (a.loss.to_bits(), a.d_depth.to_bits(), a.valid_views),
-                                (b.loss.to_bits(), b.d_depth.to_bits(), b.valid_views),
-                                "{cfg:?} src {src} ({u}, {v}) depth {d}"
-                            );
-                            most = most.max(a.valid_views);
+                            let views = same_bits(&cfg, &k, &poses, src, (u, v), d, &img, &cpu);
+                            most = most.max(views);
                         }
                     }
                 }
