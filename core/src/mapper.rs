@@ -58,6 +58,7 @@ use crate::camera::{Intrinsics, Pose};
 use crate::field::model::{Group, Ray, RayResult, NUM_GROUPS};
 use crate::loss::planar::PlanarConfig;
 use crate::loss::warp::{WarpConfig, MAX_WINDOW};
+use crate::math;
 use crate::rng::{hash_u32, SplitMix};
 use crate::train::backend::{Backend, ImageStore, MapBatch};
 use crate::train::pixel::{MappingLoss, PixelResult, PixelSample};
@@ -183,6 +184,22 @@ pub struct MapperConfig {
     /// Share of the batch's triples made triplets (spread evenly over the batch; the other
     /// pixels stay independent draws), in (0, 1].
     pub planar_share: f32,
+    /// Region triplets (0 = off: spacings drawn in `1..=planar_spacing`). When > 0, a
+    /// triplet's outer pixels are the ends of the plain run around its centre along the drawn
+    /// row or column: the walk from the centre stops before the first step between
+    /// neighbouring pixels whose mean channel difference exceeds this (colour in [0, 1]), at
+    /// `planar_spacing` px or at the sampling border. So the prior asks the centre of a plain
+    /// region to lie on the plane through the region's ends, whose depth the warping term can
+    /// see (textured borders), instead of on a plane with its immediate neighbours (which a
+    /// smooth lump satisfies). A centre with either end closer than
+    /// [`PLANAR_REGION_MIN`] px (textured: the warping term shapes it) stays an independent
+    /// draw, as do its two partners.
+    pub planar_region_step: f32,
+    /// Whether a triplet pays the prior only where its centre has the warping term's
+    /// `min_views` valid views (true). The gate keeps fixed-spacing triplets from carrying a
+    /// near edge's depth into space only the newest frames see; region triplets stop at
+    /// colour edges on their own, and measured better without it (ARCHITECTURE.md).
+    pub planar_gate: bool,
     /// Non-finite steps: every rejected step (see [`crate::train::backend::StepStats::rejected`]) is
     /// skipped and counted; after `rejected_lr_after` rejected steps in a row (0 = never)
     /// every group's learning rate is multiplied by `rejected_lr_factor` (in (0, 1]).
@@ -248,6 +265,8 @@ impl MapperConfig {
             planar_beta: 0.05,
             planar_spacing: 8,
             planar_share: 1.0,
+            planar_region_step: 0.0,
+            planar_gate: true,
             rejected_lr_after: 3,
             rejected_lr_factor: 0.5,
             init_min_transmittance: 0.0,
@@ -371,6 +390,11 @@ impl MapperConfig {
         if !(ok(self.lambda_planar) && ok(self.planar_edge) && ok(self.planar_beta)) {
             return Err(Error::InvalidConfig(
                 "mapper: lambda_planar, planar_edge and planar_beta must be finite and >= 0",
+            ));
+        }
+        if !ok(self.planar_region_step) {
+            return Err(Error::InvalidConfig(
+                "mapper: planar_region_step must be finite and >= 0",
             ));
         }
         if !(self.planar_share > 0.0 && self.planar_share <= 1.0) {
@@ -513,6 +537,10 @@ pub struct HeldFrame {
     /// Camera-to-world pose.
     pub pose: Pose,
 }
+
+/// Shortest distance (px) from a region triplet's centre to either end of its plain run
+/// ([`MapperConfig::planar_region_step`]).
+pub const PLANAR_REGION_MIN: u32 = 4;
 
 /// Most image slots a mapper hands out.
 pub const MAX_SLOTS: usize = MAX_LOCAL + MAX_KEYFRAMES;
@@ -1233,6 +1261,15 @@ impl<'a, B: Backend> Mapper<'a, B> {
             }
             let o = self.pix_off;
             let mid = self.pixels[o + first + 1];
+            if self.cfg.planar_region_step > 0.0 {
+                let row = self.rng.below(2) == 0;
+                if let Some((a, c)) = self.region_ends(mid, row) {
+                    self.pixels[o + first] = a;
+                    self.pixels[o + first + 2] = c;
+                }
+                first += 3;
+                continue;
+            }
             let s = 1 + self.rng.below(self.cfg.planar_spacing);
             let row = self.rng.below(2) == 0;
             let (lo, hi_u, hi_v) = (b + s, w - 1 - b - s, h - 1 - b - s);
@@ -1254,6 +1291,67 @@ impl<'a, B: Backend> Mapper<'a, B> {
             self.pixels[o + first + 2] = c;
             first += 3;
         }
+    }
+
+    /// The ends of the plain run through `mid` along its row (`row`) or column (see
+    /// [`MapperConfig::planar_region_step`]); `None` when either end is closer than
+    /// [`PLANAR_REGION_MIN`] px.
+    fn region_ends(&self, mid: PixelSample, row: bool) -> Option<(PixelSample, PixelSample)> {
+        let slot = *self.win_slots.get(mid.frame as usize)?;
+        let (w, h) = (self.k.width, self.k.height);
+        let b = self.cfg.border;
+        let (pos, lo, hi) = if row {
+            (mid.u, b, w - 1 - b)
+        } else {
+            (mid.v, b, h - 1 - b)
+        };
+        let at = |p: u32| {
+            let (u, v) = if row { (p, mid.v) } else { (mid.u, p) };
+            crate::train::pixel::unpack_rgba8(self.backend.slot_texel(slot, u, v))
+        };
+        let step = |x: [f32; 3], y: [f32; 3]| {
+            (math::abs(x[0] - y[0]) + math::abs(x[1] - y[1]) + math::abs(x[2] - y[2])) * (1.0 / 3.0)
+        };
+        let max = self.cfg.planar_spacing;
+        let thr = self.cfg.planar_region_step;
+        // towards lower coordinates, then higher
+        let mut ends = [0u32; 2];
+        for (side, end) in ends.iter_mut().enumerate() {
+            let mut s = 0u32;
+            let mut prev = at(pos);
+            while s < max {
+                let next = if side == 0 {
+                    if pos < lo + s + 1 {
+                        break;
+                    }
+                    pos - s - 1
+                } else {
+                    if pos + s + 1 > hi {
+                        break;
+                    }
+                    pos + s + 1
+                };
+                let c = at(next);
+                if step(prev, c) > thr {
+                    break;
+                }
+                prev = c;
+                s += 1;
+            }
+            *end = s;
+        }
+        if ends[0] < PLANAR_REGION_MIN || ends[1] < PLANAR_REGION_MIN {
+            return None;
+        }
+        let (mut a, mut c) = (mid, mid);
+        if row {
+            a.u = pos - ends[0];
+            c.u = pos + ends[1];
+        } else {
+            a.v = pos - ends[0];
+            c.v = pos + ends[1];
+        }
+        Some((a, c))
     }
 
     /// Draws `total` pixels spread evenly over window frames `f0..f1` into
@@ -1383,6 +1481,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 weight: on(self.cfg.lambda_planar),
                 edge: self.cfg.planar_edge,
                 beta: self.cfg.planar_beta,
+                gated: self.cfg.planar_gate,
             },
         }
     }
@@ -1546,6 +1645,8 @@ mod tests {
         layout: ModelLayout,
         store: ImageStore,
         uploads: Vec<u32>,
+        /// The uploaded images (slot-major).
+        images: Vec<u32>,
         calls: Vec<Call>,
         /// Every step reports itself rejected; the learning rates the mapper set.
         reject: bool,
@@ -1579,6 +1680,7 @@ mod tests {
                     slots,
                 },
                 uploads: Vec::new(),
+                images: vec![0; 64 * 48 * slots as usize],
                 calls: Vec::new(),
                 reject: false,
                 lr: [0.01; crate::field::model::NUM_GROUPS],
@@ -1636,7 +1738,14 @@ mod tests {
             assert_eq!(rgba.len(), self.store.slot_len());
             assert!(slot < self.store.slots);
             self.uploads.push(slot);
+            let n = self.store.slot_len();
+            self.images[slot as usize * n..][..n].copy_from_slice(rgba);
             Ok(())
+        }
+        fn slot_texel(&self, slot: u32, u: u32, v: u32) -> u32 {
+            self.store
+                .texel_index(slot, u, v)
+                .map_or(0, |i| self.images[i])
         }
         fn map_step(
             &mut self,
@@ -2073,6 +2182,71 @@ mod tests {
             }
         }
         assert_eq!(odd, 10 * m.backend().calls.len());
+    }
+
+    /// Region triplets: on frames of plain vertical bands (colour steps before columns 20, 28
+    /// and 44) and a horizontal step before row 30, every triplet's outer pixels are the ends of
+    /// the plain run through its centre (or the sampling border, or `planar_spacing` away), at
+    /// least `PLANAR_REGION_MIN` px from it; a triple whose centre lies nearer a step stays
+    /// three independent draws.
+    #[test]
+    fn region_triplets_span_the_plain_run_around_their_centre() {
+        let mut c = cfg();
+        c.lambda_planar = 0.1;
+        c.planar_spacing = 12;
+        c.planar_region_step = 0.05;
+        let band = |u: u32, v: u32| -> u32 {
+            let g = [0x20u32, 0x60, 0x90, 0xc0]
+                [(u >= 20) as usize + (u >= 28) as usize + (u >= 44) as usize];
+            // the step below is 0.04 in one channel only: a mean step of 0.013 (plain)
+            let r = if v >= 30 { g + 10 } else { g };
+            0xff00_0000 | (g << 16) | (g << 8) | r
+        };
+        let img: Vec<u32> = (0..48 * 64).map(|i| band(i % 64, i / 64)).collect();
+        let (mut px, mut res) = buffers();
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        for i in 0..20 {
+            m.push_frame(&img, pose(i)).unwrap();
+        }
+        // the run of column u along a row (the border is 10 px: columns 10..=53)
+        let run = |u: u32| -> (u32, u32) {
+            let lo = [10, 20, 28, 44][(u >= 20) as usize + (u >= 28) as usize + (u >= 44) as usize];
+            let hi = [19, 27, 43, 53][(u >= 20) as usize + (u >= 28) as usize + (u >= 44) as usize];
+            (lo.max(u.saturating_sub(12)), hi.min(u + 12))
+        };
+        let (mut rows, mut cols, mut loose) = (0, 0, 0);
+        for call in &m.backend().calls {
+            for t in call.pixels.chunks_exact(3) {
+                let t = [t[0], t[1], t[2]];
+                let (lo, hi) = run(t[1].u);
+                let near_step = t[1].u - lo < PLANAR_REGION_MIN || hi - t[1].u < PLANAR_REGION_MIN;
+                if !crate::train::pixel::is_line_triplet(&t) {
+                    loose += 1;
+                    continue;
+                }
+                if t[0].v == t[1].v {
+                    assert_eq!((t[0].u, t[2].u), (lo, hi), "{t:?}");
+                    assert!(!near_step, "{t:?}");
+                    rows += 1;
+                } else {
+                    // columns: plain from the border to the border, cut at 12 px
+                    let v = t[1].v;
+                    assert_eq!(
+                        (t[0].v, t[2].v),
+                        (10.max(v.saturating_sub(12)), 37.min(v + 12)),
+                        "{t:?}"
+                    );
+                    cols += 1;
+                }
+            }
+        }
+        assert!(
+            rows > 20 && cols > 20 && loose > 20,
+            "{rows} {cols} {loose}"
+        );
+        let mut bad = c;
+        bad.planar_region_step = f32::NAN;
+        assert!(refused(bad));
     }
 
     #[test]

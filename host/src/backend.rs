@@ -989,6 +989,13 @@ impl Backend for ParallelCpuBackend {
         Ok(())
     }
 
+    fn slot_texel(&self, slot: u32, u: u32, v: u32) -> u32 {
+        match self.store.texel_index(slot, u, v) {
+            Some(i) if i < self.images.len() => self.images[i],
+            _ => 0,
+        }
+    }
+
     fn map_step(
         &mut self,
         batch: &MapBatch<'_>,

@@ -181,6 +181,8 @@ struct MapperDef {
     planar_beta: f32,
     planar_spacing: u32,
     planar_share: f32,
+    planar_region_step: f32,
+    planar_gate: bool,
     rejected_lr_after: u32,
     rejected_lr_factor: f32,
     init_min_transmittance: f32,

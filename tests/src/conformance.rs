@@ -479,10 +479,12 @@ fn mapping_loss(step: u32, n: usize) -> MappingLoss {
         depth_prior_near: if step == 1 { 1.0 } else { 0.0 },
         // the planarity prior in steps 1 and 3 (their pixels come in line triplets)
         planar: if step % 2 == 1 {
+            // gated in step 1, not in step 3
             PlanarConfig {
                 weight: 0.5,
                 edge: 10.0,
                 beta: 0.05,
+                gated: step == 1,
             }
         } else {
             PlanarConfig::OFF
@@ -490,23 +492,25 @@ fn mapping_loss(step: u32, n: usize) -> MappingLoss {
     }
 }
 
-/// Makes pixel triples `3g..3g + 3` line triplets around their middle pixel (spacing 1..=3,
-/// rows and columns), except every fourth triple, which stays as drawn (no triplet).
+/// Makes pixel triples `3g..3g + 3` line triplets around their middle pixel (spacings
+/// 1..=3 on either side, equal or not, as the region triplets' are; rows and columns), except
+/// every fourth triple, which stays as drawn (no triplet).
 fn line_triplets(pixels: &mut [PixelSample], k: &Intrinsics, rng: &mut SplitMix) {
     for (g, t) in pixels.chunks_exact_mut(3).enumerate() {
         if g % 4 == 3 {
             continue;
         }
         let s = 1 + rng.below(3);
+        let s2 = if g % 3 == 0 { s } else { 1 + rng.below(3) };
         let mut mid = t[1];
         let (mut a, mut c) = (mid, mid);
         if g % 2 == 0 {
-            mid.u = mid.u.clamp(s, k.width - 1 - s);
-            (a.u, c.u) = (mid.u - s, mid.u + s);
+            mid.u = mid.u.clamp(s, k.width - 1 - s2);
+            (a.u, c.u) = (mid.u - s, mid.u + s2);
             (a.v, c.v) = (mid.v, mid.v);
         } else {
-            mid.v = mid.v.clamp(s, k.height - 1 - s);
-            (a.v, c.v) = (mid.v - s, mid.v + s);
+            mid.v = mid.v.clamp(s, k.height - 1 - s2);
+            (a.v, c.v) = (mid.v - s, mid.v + s2);
             (a.u, c.u) = (mid.u, mid.u);
         }
         t.copy_from_slice(&[a, mid, c]);

@@ -161,6 +161,8 @@ pub struct VulkanBackend {
     samples: Option<Buffer>,
     /// The image slots (device-local, allocated by [`VulkanBackend::with_images`]).
     images: Buffer,
+    /// A host copy of the image slots, for [`Backend::slot_texel`].
+    host_images: Vec<u32>,
     store: ImageStore,
     /// Staging for device-local buffers that are not host-visible.
     staging: Option<Buffer>,
@@ -476,6 +478,7 @@ impl VulkanBackend {
             queued: None,
             samples: None,
             images: Buffer::new(&device, 16, Memory::Device, "the image slots")?,
+            host_images: Vec::new(),
             status: {
                 let mut b = Buffer::new(&device, 16, Memory::Host, "the step's status words")?;
                 b.write_mapped(0, &[0u8; 16]);
@@ -656,6 +659,7 @@ impl VulkanBackend {
             })?;
         }
         self.store = store;
+        self.host_images = vec![0; store.total_len()];
         Ok(self)
     }
 
@@ -1162,6 +1166,7 @@ impl Backend for VulkanBackend {
     fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), VulkanError> {
         self.settle()?;
         let words = self.store.slot_range(slot, rgba.len())?;
+        self.host_images[words.clone()].copy_from_slice(rgba);
         upload_at(
             &mut self.gpu,
             &mut self.staging,
@@ -1169,6 +1174,13 @@ impl Backend for VulkanBackend {
             (words.start * 4) as u64,
             &u32_bytes(rgba),
         )
+    }
+
+    fn slot_texel(&self, slot: u32, u: u32, v: u32) -> u32 {
+        match self.store.texel_index(slot, u, v) {
+            Some(i) if i < self.host_images.len() => self.host_images[i],
+            _ => 0,
+        }
     }
 
     fn map_step(

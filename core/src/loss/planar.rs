@@ -18,6 +18,14 @@
 //! Gradients: `dr/dd_a = -(d_b/d_a)/d_a`, `dr/dd_c = -(d_b/d_c)/d_c`, `dr/dd_b = 1/d_a +
 //! 1/d_c`, times `w smoothL1'(r)`. A triplet with a depth below [`MIN_DEPTH`] (a pixel that
 //! rendered nothing) gives no loss.
+//!
+//! **Unequal spacings** (`b - s_a`, `b`, `b + s_c`: the region triplets of
+//! `mapper.planar_region_step`, whose outer pixels are the ends of the plain run around `b`):
+//! the plane's inverse depth at `b` is the interpolation `(s_c/d_a + s_a/d_c) / (s_a + s_c)`,
+//! so with `k_a = 2 s_c / (s_a + s_c)` and `k_c = 2 s_a / (s_a + s_c)` the residual is
+//! `r = (k_a d_b/d_a - 1) + (k_c d_b/d_c - 1)` and the gradients carry the same factors. For
+//! `s_a = s_c` both factors are exactly 1 and every operation is the equal-spacing one (the
+//! same bits).
 
 use super::smooth_l1;
 use crate::math;
@@ -37,6 +45,9 @@ pub struct PlanarConfig {
     pub edge: f32,
     /// Smooth-L1 threshold of the residual `r`.
     pub beta: f32,
+    /// A triplet pays the prior only where its centre has the warping term's `min_views`
+    /// valid views (see [`crate::train::pixel::pixel_loss`]).
+    pub gated: bool,
 }
 
 impl PlanarConfig {
@@ -45,6 +56,7 @@ impl PlanarConfig {
         weight: 0.0,
         edge: 0.0,
         beta: 0.0,
+        gated: false,
     };
 }
 
@@ -61,19 +73,36 @@ pub fn edge_weight(rgb: &[[f32; 3]; 3], edge: f32) -> f32 {
     1.0 / (1.0 + edge * g)
 }
 
-/// The prior of one triplet (depths and colours of pixels `b - s`, `b`, `b + s`): returns
-/// `(loss, d loss / d depth)` (zeros for an invalid triplet). Unweighted by `cfg.weight`.
+/// The prior of one triplet with equal spacings (depths and colours of pixels `b - s`, `b`,
+/// `b + s`): returns `(loss, d loss / d depth)` (zeros for an invalid triplet). Unweighted by
+/// `cfg.weight`.
 #[inline]
 pub fn planarity(depth: [f32; 3], rgb: &[[f32; 3]; 3], cfg: &PlanarConfig) -> (f32, [f32; 3]) {
+    planarity_spaced(depth, rgb, cfg, [1, 1])
+}
+
+/// [`planarity`] for pixels `b - s_a`, `b`, `b + s_c` (`spacing = [s_a, s_c]`, both >= 1;
+/// the module documentation gives the interpolation). Equal spacings give [`planarity`]'s bits.
+#[inline]
+pub fn planarity_spaced(
+    depth: [f32; 3],
+    rgb: &[[f32; 3]; 3],
+    cfg: &PlanarConfig,
+    spacing: [u32; 2],
+) -> (f32, [f32; 3]) {
     let [da, db, dc] = depth;
     // `!(x >= MIN)` also rejects NaN
     if !(da >= MIN_DEPTH && db >= MIN_DEPTH && dc >= MIN_DEPTH) {
         return (0.0, [0.0; 3]);
     }
+    let (sa, sc) = (spacing[0] as f32, spacing[1] as f32);
+    let sum = sa + sc;
+    let ka = (sc + sc) / sum;
+    let kc = (sa + sa) / sum;
     let inv_a = 1.0 / da;
     let inv_c = 1.0 / dc;
-    let ra = db * inv_a;
-    let rc = db * inv_c;
+    let ra = ka * (db * inv_a);
+    let rc = kc * (db * inv_c);
     let r = (ra - 1.0) + (rc - 1.0);
     let (v, dv) = smooth_l1(r, cfg.beta);
     let w = edge_weight(rgb, cfg.edge);
@@ -82,7 +111,7 @@ pub fn planarity(depth: [f32; 3], rgb: &[[f32; 3]; 3], cfg: &PlanarConfig) -> (f
         w * v,
         [
             -(k * (ra * inv_a)),
-            k * (inv_a + inv_c),
+            k * (ka * inv_a + kc * inv_c),
             -(k * (rc * inv_c)),
         ],
     )
@@ -96,6 +125,7 @@ mod tests {
         weight: 1.0,
         edge: 10.0,
         beta: 0.05,
+        gated: false,
     };
     const GREY: [[f32; 3]; 3] = [[0.5; 3]; 3];
 
@@ -138,26 +168,51 @@ mod tests {
         }
     }
 
+    /// Unequal spacings: a plane's inverse depth sampled at `b - 1`, `b`, `b + 3` gives no
+    /// loss; the spacing [s, s] gives the equal-spacing bits; a bump is hand-computed.
+    #[test]
+    fn unequal_spacings_interpolate_the_plane() {
+        // inverse depth 1 + u / 8 at u = -1, 0, 3 (exact binary fractions)
+        let depth = [1.0 / 0.875, 1.0, 1.0 / 1.375];
+        let (l, g) = planarity_spaced(depth, &GREY, &CFG, [1, 3]);
+        assert!(l.abs() < 1e-9, "loss {l}");
+        assert!(g.iter().all(|x| x.abs() < 1e-5), "{g:?}");
+        for d in [[1.3f32, 1.5, 1.62], [2.0, 1.2, 2.9]] {
+            for s in [1, 5, 48] {
+                assert_eq!(
+                    planarity_spaced(d, &GREY, &CFG, [s, s]),
+                    planarity(d, &GREY, &CFG)
+                );
+            }
+        }
+        // depths 1, 2, 1 at spacings 1 and 3: k_a = 1.5, k_c = 0.5, r = (3 - 1) + (1 - 1) = 2
+        let (l, g) = planarity_spaced([1.0, 2.0, 1.0], &GREY, &CFG, [1, 3]);
+        assert_eq!(l, 2.0 - 0.025);
+        assert_eq!(g, [-3.0, 2.0, -1.0]);
+    }
+
     /// Central finite differences in f64 of the f32 loss, both sides of beta.
     #[test]
     fn gradient_matches_finite_differences() {
         let rgb = [[0.1, 0.2, 0.3], [0.15, 0.2, 0.35], [0.4, 0.2, 0.3]];
         for depth in [[1.3f32, 1.5, 1.62], [2.0, 1.2, 2.9], [0.8, 0.81, 0.79]] {
-            let (_, g) = planarity(depth, &rgb, &CFG);
-            for k in 0..3 {
-                let h = 1e-3f32;
-                let mut p = depth;
-                let mut m = depth;
-                p[k] += h;
-                m[k] -= h;
-                let fd = (planarity(p, &rgb, &CFG).0 as f64 - planarity(m, &rgb, &CFG).0 as f64)
-                    / (2.0 * h as f64);
-                let tol = 2e-3 * (1.0 + fd.abs());
-                assert!(
-                    (fd - g[k] as f64).abs() < tol,
-                    "depth {depth:?} k {k}: fd {fd} analytic {}",
-                    g[k]
-                );
+            for sp in [[1, 1], [2, 7], [30, 4]] {
+                let f = |d| planarity_spaced(d, &rgb, &CFG, sp);
+                let (_, g) = f(depth);
+                for k in 0..3 {
+                    let h = 1e-3f32;
+                    let mut p = depth;
+                    let mut m = depth;
+                    p[k] += h;
+                    m[k] -= h;
+                    let fd = (f(p).0 as f64 - f(m).0 as f64) / (2.0 * h as f64);
+                    let tol = 2e-3 * (1.0 + fd.abs());
+                    assert!(
+                        (fd - g[k] as f64).abs() < tol,
+                        "depth {depth:?} spacing {sp:?} k {k}: fd {fd} analytic {}",
+                        g[k]
+                    );
+                }
             }
         }
     }

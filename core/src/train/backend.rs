@@ -76,6 +76,10 @@ pub trait Backend {
     /// Stores a frame's packed RGBA8 image (`width * height` pixels, row-major, R in the low
     /// byte, see [`crate::train::pixel::pack_rgba8`]) in image slot `slot`.
     fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), Self::Error>;
+    /// Packed RGBA8 texel `(u, v)` of image slot `slot` as last uploaded (0 outside the store).
+    /// The mapper reads frames through it to place region planarity triplets
+    /// (`MapperConfig::planar_region_step`); a device backend answers from a host copy.
+    fn slot_texel(&self, slot: u32, u: u32, v: u32) -> u32;
     /// One mapping iteration: zero the gradients,
     /// [`pixel_train`](crate::train::pixel::pixel_train) for every pixel
     /// (`pixel_id` = its index in `batch.pixels`), Adam unless the step is not finite
@@ -115,6 +119,18 @@ pub struct ImageStore {
 }
 
 impl ImageStore {
+    /// Index of texel `(u, v)` of slot `slot` in the whole store (`None` outside it).
+    pub const fn texel_index(&self, slot: u32, u: u32, v: u32) -> Option<usize> {
+        if slot < self.slots && u < self.width && v < self.height {
+            Some(
+                (slot as usize * self.height as usize + v as usize) * self.width as usize
+                    + u as usize,
+            )
+        } else {
+            None
+        }
+    }
+
     /// Pixels in one slot.
     pub const fn slot_len(&self) -> usize {
         self.width as usize * self.height as usize

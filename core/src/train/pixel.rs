@@ -13,7 +13,7 @@ use crate::field::model::{
     SampleScratch, SampleTape,
 };
 use crate::field::render::RayOutput;
-use crate::loss::planar::{planarity, PlanarConfig};
+use crate::loss::planar::{planarity_spaced, PlanarConfig};
 use crate::loss::warp::{
     warp_pixel, warp_view_count, Corners, FrameImages, WarpConfig, MAX_WINDOW,
 };
@@ -228,17 +228,28 @@ pub fn triplet_of(i: usize, n: usize) -> Option<(usize, usize)> {
     }
 }
 
-/// Whether three samples are pixels `b - s`, `b`, `b + s` (`s > 0`) along a row or a column
-/// of one frame: the shape the planarity prior needs (others are ignored).
+/// Whether three samples are pixels `b - s_a`, `b`, `b + s_c` (`s_a, s_c > 0`) along a row
+/// or a column of one frame: the shape the planarity prior needs (others are ignored).
 #[inline(always)]
 pub fn is_line_triplet(p: &[PixelSample; 3]) -> bool {
     let [a, b, c] = *p;
     if a.frame != b.frame || c.frame != b.frame {
         return false;
     }
-    let row = a.v == b.v && c.v == b.v && a.u < b.u && b.u - a.u == c.u.wrapping_sub(b.u);
-    let col = a.u == b.u && c.u == b.u && a.v < b.v && b.v - a.v == c.v.wrapping_sub(b.v);
+    let row = a.v == b.v && c.v == b.v && a.u < b.u && b.u < c.u;
+    let col = a.u == b.u && c.u == b.u && a.v < b.v && b.v < c.v;
     row || col
+}
+
+/// The spacings `[s_a, s_c]` of a line triplet ([`is_line_triplet`]) along its line.
+#[inline(always)]
+pub fn triplet_spacing(p: &[PixelSample; 3]) -> [u32; 2] {
+    let [a, b, c] = *p;
+    if a.v == b.v {
+        [b.u.wrapping_sub(a.u), c.u.wrapping_sub(b.u)]
+    } else {
+        [b.v.wrapping_sub(a.v), c.v.wrapping_sub(b.v)]
+    }
 }
 
 /// `v[m]` for `m` in 0..3 without a bounds check (`v[2]` past it).
@@ -371,12 +382,13 @@ pub fn pixel_loss<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         && m < 3
         && is_line_triplet(&triplet.pixels)
         && (triplet.pixels[0].frame as usize) < window.poses.count()
-        && centre_has_views(
-            window,
-            triplet,
-            if m == 1 { out.depth } else { triplet.depth[1] },
-            loss,
-        )
+        && (!loss.planar.gated
+            || centre_has_views(
+                window,
+                triplet,
+                if m == 1 { out.depth } else { triplet.depth[1] },
+                loss,
+            ))
     {
         let f = triplet.pixels[0].frame as usize;
         let texel = |p: PixelSample| window.images.texel(f, p.u, p.v);
@@ -393,7 +405,7 @@ pub fn pixel_loss<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         } else {
             depth[2] = out.depth;
         }
-        let (v, g) = planarity(depth, &rgb, &loss.planar);
+        let (v, g) = planarity_spaced(depth, &rgb, &loss.planar, triplet_spacing(&triplet.pixels));
         let kp = loss.color_scale * loss.planar.weight;
         // each of the three items reports a third of the triplet's loss
         result.color_loss += kp * v * (1.0 / 3.0);
@@ -679,6 +691,7 @@ mod tests {
             weight: 2.0,
             edge: 10.0,
             beta: 0.05,
+            gated: true,
         };
         let loss = MappingLoss {
             lambda_color: 0.0,
@@ -702,7 +715,7 @@ mod tests {
         let at = |u, v| PixelSample { frame: 0, u, v };
         let depths = [1.0f32, 2.0, 1.0];
         let grey = [unpack_rgba8(0xff80_8080); 3];
-        let (v, g) = planarity(depths, &grey, &planar);
+        let (v, g) = crate::loss::planar::planarity(depths, &grey, &planar);
         let run = |pixels: [PixelSample; 3], member: u32| {
             let t = PixelTriplet {
                 pixels,
@@ -725,8 +738,13 @@ mod tests {
             assert_eq!(l, 0.25 * 2.0 * v * (1.0 / 3.0));
         }
         assert_eq!(run(line, 3), (0.0, 0.0));
-        // not equally spaced, or not one frame: no term
-        assert_eq!(run([at(18, 15), at(20, 15), at(21, 15)], 0), (0.0, 0.0));
+        // unequal spacings: the interpolating plane's term
+        let (_, gs) = crate::loss::planar::planarity_spaced(depths, &grey, &planar, [2, 1]);
+        let (_, d) = run([at(18, 15), at(20, 15), at(21, 15)], 0);
+        assert_eq!(d, 0.25 * 2.0 * gs[0]);
+        // off the line, out of order, or not one frame: no term
+        assert_eq!(run([at(18, 15), at(20, 16), at(22, 15)], 0), (0.0, 0.0));
+        assert_eq!(run([at(22, 15), at(20, 15), at(18, 15)], 0), (0.0, 0.0));
         let mut other = line;
         other[2].frame = 1;
         assert_eq!(run(other, 0), (0.0, 0.0));
