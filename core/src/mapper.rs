@@ -56,9 +56,8 @@
 
 use crate::camera::{Intrinsics, Pose};
 use crate::field::model::{Group, Ray, RayResult, NUM_GROUPS};
-use crate::loss::planar::PlanarConfig;
+use crate::loss::planar::{mean_abs_diff, PlanarConfig};
 use crate::loss::warp::{WarpConfig, MAX_WINDOW};
-use crate::math;
 use crate::rng::{hash_u32, SplitMix};
 use crate::train::backend::{Backend, ImageStore, MapBatch};
 use crate::train::pixel::{MappingLoss, PixelResult, PixelSample};
@@ -1309,9 +1308,6 @@ impl<'a, B: Backend> Mapper<'a, B> {
             let (u, v) = if row { (p, mid.v) } else { (mid.u, p) };
             crate::train::pixel::unpack_rgba8(self.backend.slot_texel(slot, u, v))
         };
-        let step = |x: [f32; 3], y: [f32; 3]| {
-            (math::abs(x[0] - y[0]) + math::abs(x[1] - y[1]) + math::abs(x[2] - y[2])) * (1.0 / 3.0)
-        };
         let max = self.cfg.planar_spacing;
         let thr = self.cfg.planar_region_step;
         // towards lower coordinates, then higher
@@ -1332,7 +1328,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
                     pos + s + 1
                 };
                 let c = at(next);
-                if step(prev, c) > thr {
+                if mean_abs_diff(prev, c) > thr {
                     break;
                 }
                 prev = c;

@@ -60,9 +60,10 @@ impl PlanarConfig {
     };
 }
 
-/// Mean over the channels of `|x - y|`.
+/// Mean over the channels of `|x - y|` (the colour step of the edge weight, and the one the
+/// mapper's region triplets stop at).
 #[inline(always)]
-fn mean_abs_diff(x: [f32; 3], y: [f32; 3]) -> f32 {
+pub fn mean_abs_diff(x: [f32; 3], y: [f32; 3]) -> f32 {
     (math::abs(x[0] - y[0]) + math::abs(x[1] - y[1]) + math::abs(x[2] - y[2])) * (1.0 / 3.0)
 }
 
