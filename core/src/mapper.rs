@@ -401,13 +401,21 @@ impl MapperConfig {
                 "mapper: planar_share must be in (0, 1]",
             ));
         }
+        // region triplets: `planar_spacing` is the longest run, cut at the border anyway
+        let region = self.planar_region_step > 0.0;
+        let s = if region {
+            PLANAR_REGION_MIN
+        } else {
+            self.planar_spacing
+        };
         if self.lambda_planar > 0.0
-            && (self.planar_spacing == 0
-                || store.width <= 2 * (self.border + self.planar_spacing)
-                || store.height <= 2 * (self.border + self.planar_spacing))
+            && (self.planar_spacing < if region { PLANAR_REGION_MIN } else { 1 }
+                || store.width <= 2 * (self.border + s)
+                || store.height <= 2 * (self.border + s))
         {
             return Err(Error::InvalidConfig(
-                "mapper: planar_spacing must be >= 1 and leave room inside the sampling border",
+                "mapper: planar_spacing must be >= 1 (>= 4 with planar_region_step) and leave \
+                 room inside the sampling border",
             ));
         }
         self.warp.validate()?;
@@ -2242,6 +2250,22 @@ mod tests {
         );
         let mut bad = c;
         bad.planar_region_step = f32::NAN;
+        assert!(refused(bad));
+        // the longest run may exceed the image (64 x 48, border 10): the walk stops at the
+        // border; a run shorter than the shortest accepted is refused
+        let mut long = c;
+        long.planar_spacing = 100;
+        let (mut px, mut res) = buffers();
+        assert!(Mapper::new(
+            Mock::new(long.slots_needed()),
+            long,
+            intr(),
+            &mut px,
+            &mut res
+        )
+        .is_ok());
+        bad = c;
+        bad.planar_spacing = PLANAR_REGION_MIN - 1;
         assert!(refused(bad));
     }
 
