@@ -402,16 +402,16 @@ impl MapperConfig {
             ));
         }
         // region triplets: `planar_spacing` is the longest run, cut at the border anyway
-        let region = self.planar_region_step > 0.0;
-        let s = if region {
-            PLANAR_REGION_MIN
+        // the shortest spacing accepted, and the room a triplet needs inside the border
+        let (min, room) = if self.planar_region_step > 0.0 {
+            (PLANAR_REGION_MIN, PLANAR_REGION_MIN)
         } else {
-            self.planar_spacing
+            (1, self.planar_spacing)
         };
         if self.lambda_planar > 0.0
-            && (self.planar_spacing < if region { PLANAR_REGION_MIN } else { 1 }
-                || store.width <= 2 * (self.border + s)
-                || store.height <= 2 * (self.border + s))
+            && (self.planar_spacing < min
+                || store.width <= 2 * (self.border + room)
+                || store.height <= 2 * (self.border + room))
         {
             return Err(Error::InvalidConfig(
                 "mapper: planar_spacing must be >= 1 (>= 4 with planar_region_step) and leave \
@@ -1319,10 +1319,11 @@ impl<'a, B: Backend> Mapper<'a, B> {
         let max = self.cfg.planar_spacing;
         let thr = self.cfg.planar_region_step;
         // towards lower coordinates, then higher
+        let centre = at(pos);
         let mut ends = [0u32; 2];
         for (side, end) in ends.iter_mut().enumerate() {
             let mut s = 0u32;
-            let mut prev = at(pos);
+            let mut prev = centre;
             while s < max {
                 let next = if side == 0 {
                     if pos < lo + s + 1 {
@@ -2199,9 +2200,10 @@ mod tests {
         c.lambda_planar = 0.1;
         c.planar_spacing = 12;
         c.planar_region_step = 0.05;
+        // which band column u lies in
+        let band_of = |u: u32| (u >= 20) as usize + (u >= 28) as usize + (u >= 44) as usize;
         let band = |u: u32, v: u32| -> u32 {
-            let g = [0x20u32, 0x60, 0x90, 0xc0]
-                [(u >= 20) as usize + (u >= 28) as usize + (u >= 44) as usize];
+            let g = [0x20u32, 0x60, 0x90, 0xc0][band_of(u)];
             // the step below is 0.04 in one channel only: a mean step of 0.013 (plain)
             let r = if v >= 30 { g + 10 } else { g };
             0xff00_0000 | (g << 16) | (g << 8) | r
@@ -2214,8 +2216,7 @@ mod tests {
         }
         // the run of column u along a row (the border is 10 px: columns 10..=53)
         let run = |u: u32| -> (u32, u32) {
-            let lo = [10, 20, 28, 44][(u >= 20) as usize + (u >= 28) as usize + (u >= 44) as usize];
-            let hi = [19, 27, 43, 53][(u >= 20) as usize + (u >= 28) as usize + (u >= 44) as usize];
+            let (lo, hi) = ([10, 20, 28, 44][band_of(u)], [19, 27, 43, 53][band_of(u)]);
             (lo.max(u.saturating_sub(12)), hi.min(u + 12))
         };
         let (mut rows, mut cols, mut loose) = (0, 0, 0);
