@@ -19,7 +19,9 @@ use himap_core::train::adam::{AdamConfig, AdamStep};
 use himap_core::train::backend::{
     copy_group, write_group, Backend, ImageStore, MapBatch, StepStats,
 };
-use himap_core::train::batch::{run_items, BatchJob, ItemRunner, MapPixels, Rays, TripletMemo};
+use himap_core::train::batch::{
+    run_items, BatchJob, DepthRays, ItemRunner, MapPixels, Rays, TripletMemo,
+};
 use himap_core::train::fixed;
 use himap_core::train::pixel::{PixelResult, SlotPixels};
 use rayon::prelude::*;
@@ -944,6 +946,11 @@ impl Backend for ParallelCpuBackend {
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), CpuError> {
         self.run_job(&Rays { rays, loss: None }, results)?;
+        Ok(())
+    }
+
+    fn render_depth(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), CpuError> {
+        self.run_job(&DepthRays { rays }, results)?;
         Ok(())
     }
 

@@ -228,6 +228,23 @@ pub fn forward_rendering<C: Candidate>(c: &C) {
         );
         assert!(rc.iter().filter(|r| r.opacity > 0.0).count() > 250);
         assert_eq!(rb.last().unwrap().opacity, 0.0);
+        // The depth-only render: the same depth and opacity bits, with and without early
+        // termination (the backend may skip the colour).
+        for t_min in [0.0, 0.05] {
+            cpu.set_min_transmittance(t_min).unwrap();
+            b.set_min_transmittance(t_min).unwrap();
+            cpu.render(&rays, &mut rc).unwrap();
+            let mut rd = vec![RayResult::default(); rays.len()];
+            b.render_depth(&rays, &mut rd).unwrap();
+            let depth_opacity = |r: &[RayResult]| -> Vec<f32> {
+                r.iter().flat_map(|r| [r.depth, r.opacity]).collect()
+            };
+            assert_same_f32(
+                &format!("{mode:?} depth-only render, termination {t_min}"),
+                &depth_opacity(&rc),
+                &depth_opacity(&rd),
+            );
+        }
     }
 }
 

@@ -1001,6 +1001,21 @@ pub trait SampleTape {
         s: &mut SampleScratch,
     ) -> (f32, [f32; 3]);
 
+    /// The signed distance of [`SampleTape::forward`] alone (the same bits), for renders that
+    /// need depth and opacity only ([`ray_depth_forward_taped`]); the tape keeps nothing a
+    /// backward could use.
+    fn sdf_forward<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        _i: usize,
+        t: f32,
+        s: &mut SampleScratch,
+    ) -> f32 {
+        sdf_at(layout, params, point_on_ray(ray, t), s)
+    }
+
     /// [`sample_backward`] of sample `i` (depth `t`, colour `rgb` from the forward).
     #[allow(clippy::too_many_arguments)]
     fn backward<P: ParamRead + ?Sized, S: ModelGradSink>(
@@ -1115,6 +1130,32 @@ impl SampleTape for StoredTape<'_> {
     }
 
     #[inline(always)]
+    fn sdf_forward<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        t: f32,
+        s: &mut SampleScratch,
+    ) -> f32 {
+        let p = point_on_ray(ray, t);
+        let Some(g) = self.geometry.get_mut(i) else {
+            return sdf_at(layout, params, p, s);
+        };
+        grid_forward_any(
+            &layout.geometry_grid,
+            params.geometry_grid,
+            p,
+            &mut s.geo_feat,
+        );
+        geometry_input(layout, &s.geo_feat, &mut s.mlp_in);
+        let gm = &layout.geometry_mlp;
+        mlp::mlp_forward_transposed(gm, self.geometry_wt, &s.mlp_in, g, &mut s.mlp_out);
+        s.mlp_out[0]
+    }
+
+    #[inline(always)]
     fn backward<P: ParamRead + ?Sized, S: ModelGradSink>(
         &self,
         layout: &ModelLayout,
@@ -1220,6 +1261,43 @@ pub fn ray_forward_taped<P: ParamRead + ?Sized, T: SampleTape>(
         let (sdf, rgb) = tape.forward(layout, params, ray, i, cache.t[i], s);
         cache.sdf[i] = sdf;
         cache.rgb[i] = rgb;
+        i += 1;
+        if t_min > 0.0 {
+            trans *= render::transmittance_factor(mode, params.beta, sdf);
+            if trans < t_min {
+                break;
+            }
+        }
+    }
+    cache.n = i;
+    ray_composite(layout, params.beta, cache);
+}
+
+/// [`ray_forward_taped`] for depth and opacity alone: the same samples, signed distances,
+/// early termination and compositing (so the same `depth`, `opacity`, weights and `n` bits),
+/// without the appearance grid and decoder; every sample's colour is 0, so `out.color` is 0.
+/// For renders that only place surfaces (mesh culling, the surface level, planarity
+/// partners); about half of a sample's forward is its appearance.
+#[allow(clippy::too_many_arguments)]
+pub fn ray_depth_forward_taped<P: ParamRead + ?Sized, T: SampleTape>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    ray: &Ray,
+    ray_id: u32,
+    seed: u32,
+    jitter: bool,
+    cache: &mut RayCache,
+    s: &mut SampleScratch,
+    tape: &mut T,
+) {
+    let n = ray_samples(layout, ray, ray_id, seed, jitter, &mut cache.t);
+    let (mode, t_min) = (layout.config.render_mode, layout.config.min_transmittance);
+    let mut trans = 1.0f32;
+    let mut i = 0;
+    while i < n {
+        let sdf = tape.sdf_forward(layout, params, ray, i, cache.t[i], s);
+        cache.sdf[i] = sdf;
+        cache.rgb[i] = [0.0; 3];
         i += 1;
         if t_min > 0.0 {
             trans *= render::transmittance_factor(mode, params.beta, sdf);
@@ -1697,6 +1775,92 @@ mod tests {
                     missed * 100 <= checked * 5,
                     "{mode:?} {kind:?}: {missed}/{checked} mismatches"
                 );
+            }
+        }
+    }
+
+    /// The depth-only forward gives the full forward's samples, signed distances, weights,
+    /// depth, opacity and sample count bit for bit (both tapes, every render mode, with and
+    /// without early termination) and a colour of 0.
+    #[test]
+    fn depth_only_forward_equals_the_full_forward() {
+        for mode in [
+            RenderMode::SdfDensity,
+            RenderMode::Occupancy,
+            RenderMode::SdfDirect,
+        ] {
+            for t_min in [0.0, 0.3] {
+                let mut layout = small(mode, crate::field::grid::GridKind::Factorized);
+                layout.config.min_transmittance = t_min;
+                let p = init(&layout);
+                let params = params_of(&p);
+                let mut wt: [Vec<f32>; 2] = [vec![0.0; p[2].len()], vec![0.0; p[3].len()]];
+                mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
+                mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
+                let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
+                let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
+                let mut s = SampleScratch::new();
+                let (mut opaque, mut cut) = (0, 0);
+                for (i, r) in rays(24).iter().enumerate() {
+                    for jitter in [false, true] {
+                        let mut full = RayCache::new();
+                        ray_forward(&layout, &params, r, i as u32, 4, jitter, &mut full, &mut s);
+                        for stored in [false, true] {
+                            let mut d = RayCache::new();
+                            if stored {
+                                let mut tape = StoredTape {
+                                    geometry: &mut geometry,
+                                    appearance: &mut appearance,
+                                    geometry_wt: &wt[0],
+                                    appearance_wt: &wt[1],
+                                };
+                                ray_depth_forward_taped(
+                                    &layout, &params, r, i as u32, 4, jitter, &mut d, &mut s,
+                                    &mut tape,
+                                );
+                            } else {
+                                ray_depth_forward_taped(
+                                    &layout,
+                                    &params,
+                                    r,
+                                    i as u32,
+                                    4,
+                                    jitter,
+                                    &mut d,
+                                    &mut s,
+                                    &mut Recompute,
+                                );
+                            }
+                            let what = format!("{mode:?} t_min {t_min} ray {i} stored {stored}");
+                            assert_eq!(d.n, full.n, "{what}");
+                            for k in 0..full.n {
+                                assert_eq!(d.t[k].to_bits(), full.t[k].to_bits(), "{what}");
+                                assert_eq!(d.sdf[k].to_bits(), full.sdf[k].to_bits(), "{what}");
+                                assert_eq!(
+                                    d.out.weights[k].to_bits(),
+                                    full.out.weights[k].to_bits(),
+                                    "{what}"
+                                );
+                            }
+                            assert_eq!(d.out.depth.to_bits(), full.out.depth.to_bits(), "{what}");
+                            assert_eq!(
+                                d.out.opacity.to_bits(),
+                                full.out.opacity.to_bits(),
+                                "{what}"
+                            );
+                            assert_eq!(d.out.color, [0.0; 3], "{what}");
+                        }
+                        opaque += (full.out.opacity > 0.5) as usize;
+                        cut += (full.n < layout.config.samples as usize && full.n > 0) as usize;
+                    }
+                }
+                assert!(
+                    opaque > 5,
+                    "{mode:?}: too few opaque rays to compare ({opaque})"
+                );
+                if t_min > 0.0 && mode != RenderMode::SdfDirect {
+                    assert!(cut > 0, "{mode:?}: no ray stopped early");
+                }
             }
         }
     }

@@ -57,6 +57,11 @@ pub trait Backend {
     ) -> Result<StepStats, Self::Error>;
     /// Renders rays without jitter (bin centres); no gradients.
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), Self::Error>;
+    /// [`Backend::render`]'s depth and opacity (the same bits) where the colour is not needed;
+    /// a backend may leave the colour 0 and skip the appearance. By default the full render.
+    fn render_depth(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), Self::Error> {
+        self.render(rays, results)
+    }
     /// Copies a group's parameters out.
     fn read_params(&mut self, group: Group, out: &mut [f32]) -> Result<(), Self::Error>;
     /// Copies a group's fixed-point gradient of the last step out.

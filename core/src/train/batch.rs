@@ -13,8 +13,8 @@
 
 use crate::camera::{Pose, PoseRead};
 use crate::field::model::{
-    ray_forward_taped, ray_train, LossConfig, ModelGradSink, ModelLayout, Params, Ray, RayCache,
-    RayResult, SampleScratch, SampleTape,
+    ray_depth_forward_taped, ray_forward_taped, ray_train, LossConfig, ModelGradSink, ModelLayout,
+    Params, Ray, RayCache, RayResult, SampleScratch, SampleTape,
 };
 use crate::loss::warp::FrameImages;
 use crate::train::backend::{summarize, summarize_pixels, MapBatch, StepStats};
@@ -150,6 +150,45 @@ impl BatchJob for Rays<'_> {
         ray_train(
             r.layout, r.params, ray, id, loss, r.cache, r.scratch, r.tape, r.sink,
         )
+    }
+
+    fn summarize(results: &[RayResult], t: u32) -> StepStats {
+        summarize(results, t)
+    }
+}
+
+/// A depth-only render ([`ray_depth_forward_taped`] at the bins' centres): the depth and
+/// opacity bits of a [`Rays`] render, colour 0, the sink receives nothing.
+#[derive(Clone, Copy)]
+pub struct DepthRays<'a> {
+    /// The rays (item `i` is ray `i`).
+    pub rays: &'a [Ray],
+}
+
+impl BatchJob for DepthRays<'_> {
+    type Output = RayResult;
+
+    fn len(&self) -> usize {
+        self.rays.len()
+    }
+
+    #[inline(always)]
+    fn run<P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
+        &self,
+        r: &mut ItemRunner<'_, P, T, S>,
+        i: usize,
+    ) -> RayResult {
+        let (ray, id) = (&self.rays[i], i as u32);
+        ray_depth_forward_taped(
+            r.layout, r.params, ray, id, 0, false, r.cache, r.scratch, r.tape,
+        );
+        let out = &r.cache.out;
+        RayResult {
+            color: out.color,
+            depth: out.depth,
+            opacity: out.opacity,
+            loss: 0.0,
+        }
     }
 
     fn summarize(results: &[RayResult], t: u32) -> StepStats {

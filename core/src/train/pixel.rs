@@ -507,7 +507,18 @@ pub fn triplet_depth<P: ParamRead + ?Sized, I: FrameImages + ?Sized, PS: PoseRea
     if !ok {
         return 0.0;
     }
-    crate::field::model::ray_forward(layout, params, &ray, id, loss.seed, true, cache, scratch);
+    // Depth alone: the same bits as the partner's own item's forward renders.
+    crate::field::model::ray_depth_forward_taped(
+        layout,
+        params,
+        &ray,
+        id,
+        loss.seed,
+        true,
+        cache,
+        scratch,
+        &mut crate::field::model::Recompute,
+    );
     cache.out.depth
 }
 

@@ -72,6 +72,31 @@ pub fn render_view<B: Backend>(
 where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
+    view_results(backend, k, pose, false)
+}
+
+/// [`render_view`]'s depth and opacity (the same bits) through [`Backend::render_depth`]; the
+/// colour may be 0 (the CPU skips the appearance: about twice as fast).
+pub fn render_view_depth<B: Backend>(
+    backend: &mut B,
+    k: &Intrinsics,
+    pose: &Pose,
+) -> anyhow::Result<Vec<RayResult>>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    view_results(backend, k, pose, true)
+}
+
+fn view_results<B: Backend>(
+    backend: &mut B,
+    k: &Intrinsics,
+    pose: &Pose,
+    depth_only: bool,
+) -> anyhow::Result<Vec<RayResult>>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
     let n = k.width as usize * k.height as usize;
     let mut rays = vec![
         Ray {
@@ -84,7 +109,11 @@ where
     ];
     view_rays(k, pose, &mut rays).map_err(|e| anyhow::anyhow!("{e}"))?;
     let mut out = vec![RayResult::default(); n];
-    backend.render(&rays, &mut out)?;
+    if depth_only {
+        backend.render_depth(&rays, &mut out)?;
+    } else {
+        backend.render(&rays, &mut out)?;
+    }
     Ok(out)
 }
 

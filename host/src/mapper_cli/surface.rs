@@ -25,7 +25,7 @@ where
     let mut pts = Vec::new();
     for v in 0..views {
         let pose = &poses[(v * poses.len()) / views];
-        let out = render_view(backend, k, pose)?;
+        let out = render_view_depth(backend, k, pose)?;
         for (i, r) in out.iter().enumerate() {
             if r.opacity > 0.9 && r.depth > 0.0 && r.depth.is_finite() {
                 let (u, w) = ((i % k.width as usize) as f32, (i / k.width as usize) as f32);
@@ -76,7 +76,7 @@ where
     let mut out = Vec::with_capacity(n);
     for v in 0..n {
         let pose = poses[v * poses.len() / n];
-        let r = render_view(backend, &lk, &pose)?;
+        let r = render_view_depth(backend, &lk, &pose)?;
         let d = r
             .iter()
             .map(|r| {
