@@ -930,7 +930,15 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 self.add_to_window(e);
             }
             let block = self.cfg.refine_block.min(iters - done);
-            let (f, l) = self.run_iters(UpdateKind::Refine, block, observe)?;
+            // The observer counts the refinement's iterations, not the block's.
+            let mut whole = |info: &IterInfo| {
+                observe(&IterInfo {
+                    iter: done + info.iter,
+                    iters,
+                    ..*info
+                })
+            };
+            let (f, l) = self.run_iters(UpdateKind::Refine, block, &mut whole)?;
             first.get_or_insert(f);
             *last = Some(l);
             done += block;
@@ -1987,9 +1995,12 @@ mod tests {
         let calls = &m.backend().calls[before..];
         assert_eq!(calls.len(), 25);
         assert_eq!(kinds.len(), 25);
-        // blocks of 10, 10, 5 iterations, each on one window
-        assert_eq!(kinds[9], (UpdateKind::Refine, 9, 10));
-        assert_eq!(kinds[24], (UpdateKind::Refine, 4, 5));
+        // blocks of 10, 10, 5 iterations, each on one window; the observer counts the
+        // refinement's iterations
+        assert!(kinds
+            .iter()
+            .enumerate()
+            .all(|(i, k)| *k == (UpdateKind::Refine, i as u32, 25)));
         let mut starts = Vec::new();
         for (b, block) in [&calls[0..10], &calls[10..20], &calls[20..25]]
             .into_iter()
