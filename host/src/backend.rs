@@ -288,6 +288,8 @@ struct Worker {
     scratch: Box<SampleScratch>,
     tape_geometry: Vec<MlpScratch>,
     tape_appearance: Vec<MlpScratch>,
+    /// The grids' backward factor rows, reused from sample to sample.
+    grid_rows: Box<std::cell::RefCell<[[f32; MAX_WIDTH]; 6]>>,
 }
 
 impl Worker {
@@ -299,6 +301,7 @@ impl Worker {
             scratch: Box::new(SampleScratch::new()),
             tape_geometry: vec![MlpScratch::new(); MAX_SAMPLES],
             tape_appearance: vec![MlpScratch::new(); MAX_SAMPLES],
+            grid_rows: Box::new(std::cell::RefCell::new([[0.0; MAX_WIDTH]; 6])),
         }
     }
 
@@ -314,6 +317,7 @@ impl Worker {
             appearance: &mut self.tape_appearance,
             geometry_wt: &wt[0],
             appearance_wt: &wt[1],
+            grid_rows: &self.grid_rows,
         };
         let mut sink = WorkerSink {
             grads: &mut self.grads,

@@ -988,6 +988,23 @@ pub fn grid_backward_rows<S: GradSink>(
     d_feat: &[f32; MAX_GRID_FEATURES],
     sink: &mut S,
 ) {
+    let mut gl = [[0.0f32; crate::field::mlp::MAX_WIDTH]; 6];
+    grid_backward_rows_with(layout, params, p, d_feat, sink, &mut gl);
+}
+
+/// [`grid_backward_rows`] with the caller's factor rows `gl` (any contents: each level writes
+/// the channels `..nc` of every row before the sink reads them, and nothing reads past `nc`),
+/// so that a caller running it per sample does not clear 3 KB each time. Same calls, same
+/// values.
+#[inline]
+pub fn grid_backward_rows_with<S: GradSink>(
+    layout: &GridLayout,
+    params: &[f32],
+    p: [f32; 3],
+    d_feat: &[f32; MAX_GRID_FEATURES],
+    sink: &mut S,
+    gl: &mut [[f32; crate::field::mlp::MAX_WIDTH]; 6],
+) {
     let (nl, nc) = kernel_dims(layout);
     if layout.kind == GridKind::Dense || nc > crate::field::mlp::MAX_WIDTH {
         grid_backward(layout, params, p, d_feat, sink);
@@ -995,14 +1012,13 @@ pub fn grid_backward_rows<S: GradSink>(
     }
     let (xn, _) = normalize_with_mask(&layout.aabb, p);
     if nc < NARROW_CHANNELS && nl * nc <= LANES {
-        if !narrow_backward(layout, params, xn, d_feat, sink) {
+        if !narrow_backward(layout, params, xn, d_feat, sink, gl) {
             grid_backward(layout, params, p, d_feat, sink);
         }
         return;
     }
     // Per channel: g * (the other factor) of every term: lines x, y, z; planes xy, xz, yz
     // (entries [..nc] are rewritten at every level).
-    let mut gl = [[0.0f32; crate::field::mlp::MAX_WIDTH]; 6];
     let mut l = 0;
     while l < nl {
         let lv = &layout.level[l];
@@ -1019,7 +1035,7 @@ pub fn grid_backward_rows<S: GradSink>(
                 row[c] = f;
             }
         }
-        level_rows_backward(sink, &k, cell.f, &gl, nc);
+        level_rows_backward(sink, &k, cell.f, gl, nc);
         l += 1;
     }
 }
@@ -1034,6 +1050,7 @@ fn narrow_backward<S: GradSink>(
     xn: [f32; 3],
     d_feat: &[f32; MAX_GRID_FEATURES],
     sink: &mut S,
+    gl: &mut [[f32; crate::field::mlp::MAX_WIDTH]; 6],
 ) -> bool {
     let (nl, nc) = kernel_dims(layout);
     let Some(g) = NarrowLanes::gather(layout, params, xn) else {
@@ -1046,7 +1063,6 @@ fn narrow_backward<S: GradSink>(
             lane[i] = f;
         }
     }
-    let mut gl = [[0.0f32; crate::field::mlp::MAX_WIDTH]; 6];
     for l in 0..nl {
         let lv = &layout.level[l];
         let cell = locate(xn, lv.res);
@@ -1054,7 +1070,7 @@ fn narrow_backward<S: GradSink>(
         for (row, lane) in gl.iter_mut().zip(&lanes) {
             row[..nc].copy_from_slice(&lane[l * nc..(l + 1) * nc]);
         }
-        level_rows_backward(sink, &k, cell.f, &gl, nc);
+        level_rows_backward(sink, &k, cell.f, gl, nc);
     }
     true
 }
@@ -1891,6 +1907,12 @@ mod tests {
                 let mut s2 = RecordSink { adds: Vec::new() };
                 grid_backward(&layout, &params[..], p, &d, &mut s1);
                 grid_backward_rows(&layout, &params, p, &d, &mut s2);
+                // The same calls with reused factor rows whatever they held before.
+                let mut s3 = RecordSink { adds: Vec::new() };
+                let fill = [f32::NAN, 1e30, -7.0][trial % 3];
+                let mut gl = [[fill; crate::field::mlp::MAX_WIDTH]; 6];
+                grid_backward_rows_with(&layout, &params, p, &d, &mut s3, &mut gl);
+                assert_eq!(s2.adds, s3.adds, "{p:?}");
                 s1.adds.sort_unstable();
                 s2.adds.sort_unstable();
                 assert_eq!(s1.adds, s2.adds, "{p:?}");

@@ -1082,6 +1082,9 @@ pub struct StoredTape<'a> {
     pub geometry_wt: &'a [f32],
     /// The appearance decoder's weights, transposed ([`mlp::transpose_weights`]).
     pub appearance_wt: &'a [f32],
+    /// Factor rows the grids' backward reuses from sample to sample
+    /// ([`grid::grid_backward_rows_with`]; any contents).
+    pub grid_rows: &'a core::cell::RefCell<[[f32; MAX_WIDTH]; 6]>,
 }
 
 impl SampleTape for StoredTape<'_> {
@@ -1179,12 +1182,13 @@ impl SampleTape for StoredTape<'_> {
                 inner: &mut *sink,
                 group: Group::GeometryGrid,
             };
-            grid_backward_any(
+            grid_backward_reusing(
                 &layout.geometry_grid,
                 params.geometry_grid,
                 p,
                 &d_feat,
                 &mut gs,
+                self.grid_rows,
             );
         }
         if d_rgb[0] != 0.0 || d_rgb[1] != 0.0 || d_rgb[2] != 0.0 {
@@ -1193,12 +1197,13 @@ impl SampleTape for StoredTape<'_> {
                 inner: sink,
                 group: Group::AppearanceGrid,
             };
-            grid_backward_any(
+            grid_backward_reusing(
                 &layout.appearance_grid,
                 params.appearance_grid,
                 p,
                 &d_feat,
                 &mut gs,
+                self.grid_rows,
             );
         }
     }
@@ -1216,6 +1221,25 @@ fn grid_forward_any<P: ParamRead + ?Sized>(
     match params.as_slice() {
         Some(sl) => grid::grid_forward_rows(layout, sl, p, out),
         None => grid::grid_forward(layout, params, p, out),
+    }
+}
+
+/// [`grid_backward_any`] with the factor rows of the slice form taken from `rows` (the same
+/// calls and values).
+#[inline(always)]
+fn grid_backward_reusing<P: ParamRead + ?Sized, S: GradSink>(
+    layout: &GridLayout,
+    params: &P,
+    p: [f32; 3],
+    d_feat: &[f32; MAX_GRID_FEATURES],
+    sink: &mut S,
+    rows: &core::cell::RefCell<[[f32; MAX_WIDTH]; 6]>,
+) {
+    match (params.as_slice(), rows.try_borrow_mut()) {
+        (Some(sl), Ok(mut gl)) => {
+            grid::grid_backward_rows_with(layout, sl, p, d_feat, sink, &mut gl)
+        }
+        _ => grid_backward_any(layout, params, p, d_feat, sink),
     }
 }
 
@@ -1697,11 +1721,13 @@ mod tests {
         let mut wt: [Vec<f32>; 2] = [vec![0.0; p[2].len()], vec![0.0; p[3].len()]];
         mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
         mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
+        let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
         let mut tape = StoredTape {
             geometry: &mut geometry,
             appearance: &mut appearance,
             geometry_wt: &wt[0],
             appearance_wt: &wt[1],
+            grid_rows: &rows,
         };
         let mut total = 0.0f64;
         for (i, r) in rays.iter().enumerate() {
@@ -1800,6 +1826,7 @@ mod tests {
                 let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
                 let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
                 let mut s = SampleScratch::new();
+                let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
                 let (mut opaque, mut cut) = (0, 0);
                 for (i, r) in rays(24).iter().enumerate() {
                     for jitter in [false, true] {
@@ -1813,6 +1840,7 @@ mod tests {
                                     appearance: &mut appearance,
                                     geometry_wt: &wt[0],
                                     appearance_wt: &wt[1],
+                                    grid_rows: &rows,
                                 };
                                 ray_depth_forward_taped(
                                     &layout, &params, r, i as u32, 4, jitter, &mut d, &mut s,
