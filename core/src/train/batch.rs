@@ -13,8 +13,8 @@
 
 use crate::camera::{Pose, PoseRead};
 use crate::field::model::{
-    ray_depth_forward_taped, ray_forward_taped, ray_train, LossConfig, ModelGradSink, ModelLayout,
-    Params, Ray, RayCache, RayResult, SampleScratch, SampleTape,
+    ray_depth_forward_taped, ray_forward_taped, ray_train, sample_backward, LossConfig,
+    ModelGradSink, ModelLayout, Params, Ray, RayCache, RayResult, SampleScratch, SampleTape,
 };
 use crate::loss::warp::FrameImages;
 use crate::train::backend::{summarize, summarize_pixels, MapBatch, StepStats};
@@ -111,6 +111,57 @@ pub fn run_items<J: BatchJob, P: ParamRead + ?Sized, T: SampleTape, S: ModelGrad
     }
 }
 
+/// A render's tape: every sample's forward goes to slot 0 of the runner's tape (the same
+/// functions, so the same bits), since a render keeps nothing for a backward; one slot stays
+/// in the L1 cache where a training ray's tape writes 2 x 2.5 KB per sample. Its backward (which
+/// no render calls) recomputes the sample.
+struct RenderTape<'t, T: SampleTape>(&'t mut T);
+
+impl<T: SampleTape> SampleTape for RenderTape<'_, T> {
+    #[inline(always)]
+    fn forward<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        _i: usize,
+        t: f32,
+        s: &mut SampleScratch,
+    ) -> (f32, [f32; 3]) {
+        self.0.forward(layout, params, ray, 0, t, s)
+    }
+
+    #[inline(always)]
+    fn sdf_forward<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        _i: usize,
+        t: f32,
+        s: &mut SampleScratch,
+    ) -> f32 {
+        self.0.sdf_forward(layout, params, ray, 0, t, s)
+    }
+
+    #[inline(always)]
+    fn backward<P: ParamRead + ?Sized, S: ModelGradSink>(
+        &self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        _i: usize,
+        t: f32,
+        _rgb: [f32; 3],
+        d_sdf: f32,
+        d_rgb: [f32; 3],
+        s: &mut SampleScratch,
+        sink: &mut S,
+    ) {
+        sample_backward(layout, params, ray, t, d_sdf, d_rgb, s, sink);
+    }
+}
+
 /// Rays: a training step ([`ray_train`] for every ray, with `loss`) or, without a loss, a
 /// render at the bins' centres (no jitter; the sink receives nothing).
 #[derive(Clone, Copy)]
@@ -137,7 +188,15 @@ impl BatchJob for Rays<'_> {
         let (ray, id) = (&self.rays[i], i as u32);
         let Some(loss) = self.loss else {
             ray_forward_taped(
-                r.layout, r.params, ray, id, 0, false, r.cache, r.scratch, r.tape,
+                r.layout,
+                r.params,
+                ray,
+                id,
+                0,
+                false,
+                r.cache,
+                r.scratch,
+                &mut RenderTape(&mut *r.tape),
             );
             let out = &r.cache.out;
             return RayResult {
@@ -180,7 +239,15 @@ impl BatchJob for DepthRays<'_> {
     ) -> RayResult {
         let (ray, id) = (&self.rays[i], i as u32);
         ray_depth_forward_taped(
-            r.layout, r.params, ray, id, 0, false, r.cache, r.scratch, r.tape,
+            r.layout,
+            r.params,
+            ray,
+            id,
+            0,
+            false,
+            r.cache,
+            r.scratch,
+            &mut RenderTape(&mut *r.tape),
         );
         let out = &r.cache.out;
         RayResult {
