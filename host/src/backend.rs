@@ -11,8 +11,8 @@ use std::sync::{Mutex, MutexGuard};
 
 use himap_core::field::mlp::{MlpScratch, MAX_WIDTH};
 use himap_core::field::model::{
-    color_at, sdf_at, Group, LossConfig, ModelGradSink, ModelLayout, Params, PerGroup, Ray,
-    RayCache, RayResult, SampleScratch, StoredTape, NUM_GROUPS,
+    color_at_transposed, sdf_at_transposed, Group, LossConfig, ModelGradSink, ModelLayout, Params,
+    PerGroup, Ray, RayCache, RayResult, SampleScratch, StoredTape, NUM_GROUPS,
 };
 use himap_core::field::render::MAX_SAMPLES;
 use himap_core::train::adam::{AdamConfig, AdamStep};
@@ -887,22 +887,29 @@ impl ParallelCpuBackend {
         (k, n)
     }
 
-    /// Signed distances at world points.
+    /// Signed distances at world points ([`himap_core::field::model::sdf_at`]'s bits, in the fast forms).
     pub fn sdf(&self, points: &[[f32; 3]], out: &mut [f32]) {
-        self.query(points, out, sdf_at);
+        let wt = self.data.transposed_mlps();
+        self.query(points, out, |l, p, x, s, a| {
+            sdf_at_transposed(l, p, &wt[0], x, s, a)
+        });
     }
 
-    /// Colours at world points.
+    /// Colours at world points ([`himap_core::field::model::color_at`]'s bits, in the fast forms).
     pub fn color(&self, points: &[[f32; 3]], out: &mut [[f32; 3]]) {
-        self.query(points, out, color_at);
+        let wt = self.data.transposed_mlps();
+        self.query(points, out, |l, p, x, s, a| {
+            color_at_transposed(l, p, &wt[1], x, s, a)
+        });
     }
 
-    /// `out[i] = f(points[i])` for a field query `f` ([`sdf_at`], [`color_at`]), in parallel.
+    /// `out[i] = f(points[i])` for a field query `f`, in parallel.
     fn query<T: Send>(
         &self,
         points: &[[f32; 3]],
         out: &mut [T],
-        f: impl Fn(&ModelLayout, &Params<'_, [f32]>, [f32; 3], &mut SampleScratch) -> T + Sync,
+        f: impl Fn(&ModelLayout, &Params<'_, [f32]>, [f32; 3], &mut SampleScratch, &mut MlpScratch) -> T
+            + Sync,
     ) {
         let layout = self.data.layout;
         let params = self.data.view();
@@ -912,8 +919,9 @@ impl ParallelCpuBackend {
                 .zip(out.par_chunks_mut(256))
                 .for_each(|(p, o)| {
                     let mut s = Box::new(SampleScratch::new());
+                    let mut act = Box::new(MlpScratch::new());
                     for (p, o) in p.iter().zip(o.iter_mut()) {
-                        *o = f(&layout, &params, *p, &mut s);
+                        *o = f(&layout, &params, *p, &mut s, &mut act);
                     }
                 });
         });

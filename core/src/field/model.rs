@@ -1102,33 +1102,10 @@ impl SampleTape for StoredTape<'_> {
             return sample_forward(layout, params, ray, t, s);
         };
         let p = point_on_ray(ray, t);
-        grid_forward_any(
-            &layout.geometry_grid,
-            params.geometry_grid,
-            p,
-            &mut s.geo_feat,
-        );
-        geometry_input(layout, &s.geo_feat, &mut s.mlp_in);
-        let (gm, am) = (&layout.geometry_mlp, &layout.appearance_mlp);
-        mlp::mlp_forward_transposed(gm, self.geometry_wt, &s.mlp_in, g, &mut s.mlp_out);
-        let sdf = s.mlp_out[0];
-        grid_forward_any(
-            &layout.appearance_grid,
-            params.appearance_grid,
-            p,
-            &mut s.app_feat,
-        );
-        let pn = layout.config.aabb.normalize(p);
-        appearance_input(layout, pn, &s.app_feat, &mut s.mlp_in);
-        mlp::mlp_forward_transposed(am, self.appearance_wt, &s.mlp_in, a, &mut s.mlp_out);
-        let o = &s.mlp_out;
+        let sdf = sdf_eval_transposed(layout, params, self.geometry_wt, p, s, g);
         (
             sdf,
-            [
-                math::sigmoid(o[0]),
-                math::sigmoid(o[1]),
-                math::sigmoid(o[2]),
-            ],
+            color_eval_transposed(layout, params, self.appearance_wt, p, s, a),
         )
     }
 
@@ -1146,16 +1123,7 @@ impl SampleTape for StoredTape<'_> {
         let Some(g) = self.geometry.get_mut(i) else {
             return sdf_at(layout, params, p, s);
         };
-        grid_forward_any(
-            &layout.geometry_grid,
-            params.geometry_grid,
-            p,
-            &mut s.geo_feat,
-        );
-        geometry_input(layout, &s.geo_feat, &mut s.mlp_in);
-        let gm = &layout.geometry_mlp;
-        mlp::mlp_forward_transposed(gm, self.geometry_wt, &s.mlp_in, g, &mut s.mlp_out);
-        s.mlp_out[0]
+        sdf_eval_transposed(layout, params, self.geometry_wt, p, s, g)
     }
 
     #[inline(always)]
@@ -1207,6 +1175,86 @@ impl SampleTape for StoredTape<'_> {
             );
         }
     }
+}
+
+/// [`sdf_at`] in the CPU's fast forms: the grid's rows when the parameters are one slice and
+/// the geometry decoder over its transposed weights `wt` ([`mlp::transpose_weights`]), its
+/// activations into `act`. The same bits as [`sdf_at`] (tested).
+#[inline(always)]
+fn sdf_eval_transposed<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    wt: &[f32],
+    p: [f32; 3],
+    s: &mut SampleScratch,
+    act: &mut MlpScratch,
+) -> f32 {
+    grid_forward_any(
+        &layout.geometry_grid,
+        params.geometry_grid,
+        p,
+        &mut s.geo_feat,
+    );
+    geometry_input(layout, &s.geo_feat, &mut s.mlp_in);
+    let gm = &layout.geometry_mlp;
+    mlp::mlp_forward_transposed(gm, wt, &s.mlp_in, act, &mut s.mlp_out);
+    s.mlp_out[0]
+}
+
+/// [`color_at`] in the CPU's fast forms (see [`sdf_eval_transposed`]; `wt` the appearance
+/// decoder's transposed weights). The same bits as [`color_at`] (tested).
+#[inline(always)]
+fn color_eval_transposed<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    wt: &[f32],
+    p: [f32; 3],
+    s: &mut SampleScratch,
+    act: &mut MlpScratch,
+) -> [f32; 3] {
+    grid_forward_any(
+        &layout.appearance_grid,
+        params.appearance_grid,
+        p,
+        &mut s.app_feat,
+    );
+    let pn = layout.config.aabb.normalize(p);
+    appearance_input(layout, pn, &s.app_feat, &mut s.mlp_in);
+    let am = &layout.appearance_mlp;
+    mlp::mlp_forward_transposed(am, wt, &s.mlp_in, act, &mut s.mlp_out);
+    let o = &s.mlp_out;
+    [
+        math::sigmoid(o[0]),
+        math::sigmoid(o[1]),
+        math::sigmoid(o[2]),
+    ]
+}
+
+/// [`sdf_at`] for point queries on the CPU (mesh extraction): the grid's rows and the
+/// decoder over its transposed weights `wt` ([`mlp::transpose_weights`]), its activations
+/// into `act`. The same bits.
+pub fn sdf_at_transposed<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    wt: &[f32],
+    p: [f32; 3],
+    s: &mut SampleScratch,
+    act: &mut MlpScratch,
+) -> f32 {
+    sdf_eval_transposed(layout, params, wt, p, s, act)
+}
+
+/// [`color_at`] for point queries on the CPU (mesh vertex colours; see
+/// [`sdf_at_transposed`]). The same bits.
+pub fn color_at_transposed<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    wt: &[f32],
+    p: [f32; 3],
+    s: &mut SampleScratch,
+    act: &mut MlpScratch,
+) -> [f32; 3] {
+    color_eval_transposed(layout, params, wt, p, s, act)
 }
 
 /// [`grid::grid_forward_rows`] when the parameters are one slice, [`grid::grid_forward`]
@@ -1803,6 +1851,44 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The point queries in the CPU's fast forms give [`sdf_at`]'s and [`color_at`]'s bits at
+    /// points inside, on the border of and outside the box.
+    #[test]
+    fn transposed_point_queries_equal_the_plain_ones() {
+        let layout = small(
+            RenderMode::SdfDensity,
+            crate::field::grid::GridKind::Factorized,
+        );
+        let p = init(&layout);
+        let params = params_of(&p);
+        let mut wt: [Vec<f32>; 2] = [vec![0.0; p[2].len()], vec![0.0; p[3].len()]];
+        mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
+        mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
+        let (mut s, mut q) = (SampleScratch::new(), SampleScratch::new());
+        let mut act = MlpScratch::new();
+        let mut r = SplitMix::new(17);
+        let mut differ = 0;
+        for k in 0..500 {
+            let x = match k {
+                0 => [1.0, 1.0, 1.0],
+                1 => [-1.0, 0.3, 1.0],
+                _ => [0; 3].map(|_| (r.unit() - 0.5) * 2.4),
+            };
+            let (a, b) = (
+                sdf_at(&layout, &params, x, &mut s),
+                sdf_at_transposed(&layout, &params, &wt[0], x, &mut q, &mut act),
+            );
+            assert_eq!(a.to_bits(), b.to_bits(), "sdf at {x:?}");
+            let (a, b) = (
+                color_at(&layout, &params, x, &mut s),
+                color_at_transposed(&layout, &params, &wt[1], x, &mut q, &mut act),
+            );
+            assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits), "colour at {x:?}");
+            differ += (a != color_at(&layout, &params, [0.0; 3], &mut s)) as usize;
+        }
+        assert!(differ > 400, "the colour hardly varies ({differ})");
     }
 
     /// The depth-only forward gives the full forward's samples, signed distances, weights,
