@@ -1322,27 +1322,7 @@ pub fn ray_forward_taped<P: ParamRead + ?Sized, T: SampleTape>(
     s: &mut SampleScratch,
     tape: &mut T,
 ) {
-    let n = ray_samples(layout, ray, ray_id, seed, jitter, &mut cache.t);
-    // Samples are evaluated only up to where the compositing will stop (the same
-    // transmittance bits as `render_forward`; the GPU evaluates them all, which gives the
-    // same rendering).
-    let (mode, t_min) = (layout.config.render_mode, layout.config.min_transmittance);
-    let mut trans = 1.0f32;
-    let mut i = 0;
-    while i < n {
-        let (sdf, rgb) = tape.forward(layout, params, ray, i, cache.t[i], s);
-        cache.sdf[i] = sdf;
-        cache.rgb[i] = rgb;
-        i += 1;
-        if t_min > 0.0 {
-            trans *= render::transmittance_factor(mode, params.beta, sdf);
-            if trans < t_min {
-                break;
-            }
-        }
-    }
-    cache.n = i;
-    ray_composite(layout, params.beta, cache);
+    ray_forward_with::<P, T, false>(layout, params, ray, ray_id, seed, jitter, cache, s, tape);
 }
 
 /// [`ray_forward_taped`] for depth and opacity alone: the same samples, signed distances,
@@ -1362,14 +1342,40 @@ pub fn ray_depth_forward_taped<P: ParamRead + ?Sized, T: SampleTape>(
     s: &mut SampleScratch,
     tape: &mut T,
 ) {
+    ray_forward_with::<P, T, true>(layout, params, ray, ray_id, seed, jitter, cache, s, tape);
+}
+
+/// The forward of [`ray_forward_taped`] (`DEPTH_ONLY` false) and
+/// [`ray_depth_forward_taped`] (true: [`SampleTape::sdf_forward`], colour 0).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn ray_forward_with<P: ParamRead + ?Sized, T: SampleTape, const DEPTH_ONLY: bool>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    ray: &Ray,
+    ray_id: u32,
+    seed: u32,
+    jitter: bool,
+    cache: &mut RayCache,
+    s: &mut SampleScratch,
+    tape: &mut T,
+) {
     let n = ray_samples(layout, ray, ray_id, seed, jitter, &mut cache.t);
+    // Samples are evaluated only up to where the compositing will stop (the same
+    // transmittance bits as `render_forward`; the GPU evaluates them all, which gives the
+    // same rendering).
     let (mode, t_min) = (layout.config.render_mode, layout.config.min_transmittance);
     let mut trans = 1.0f32;
     let mut i = 0;
     while i < n {
-        let sdf = tape.sdf_forward(layout, params, ray, i, cache.t[i], s);
+        let (sdf, rgb) = if DEPTH_ONLY {
+            let sdf = tape.sdf_forward(layout, params, ray, i, cache.t[i], s);
+            (sdf, [0.0; 3])
+        } else {
+            tape.forward(layout, params, ray, i, cache.t[i], s)
+        };
         cache.sdf[i] = sdf;
-        cache.rgb[i] = [0.0; 3];
+        cache.rgb[i] = rgb;
         i += 1;
         if t_min > 0.0 {
             trans *= render::transmittance_factor(mode, params.beta, sdf);

@@ -187,24 +187,7 @@ impl BatchJob for Rays<'_> {
     ) -> RayResult {
         let (ray, id) = (&self.rays[i], i as u32);
         let Some(loss) = self.loss else {
-            ray_forward_taped(
-                r.layout,
-                r.params,
-                ray,
-                id,
-                0,
-                false,
-                r.cache,
-                r.scratch,
-                &mut RenderTape(&mut *r.tape),
-            );
-            let out = &r.cache.out;
-            return RayResult {
-                color: out.color,
-                depth: out.depth,
-                opacity: out.opacity,
-                loss: 0.0,
-            };
+            return render_item(r, ray, id, false);
         };
         ray_train(
             r.layout, r.params, ray, id, loss, r.cache, r.scratch, r.tape, r.sink,
@@ -213,6 +196,31 @@ impl BatchJob for Rays<'_> {
 
     fn summarize(results: &[RayResult], t: u32) -> StepStats {
         summarize(results, t)
+    }
+}
+
+/// Renders ray `id` at the bins' centres through a [`RenderTape`]: colour, depth and opacity
+/// ([`ray_forward_taped`]), or depth and opacity alone ([`ray_depth_forward_taped`]).
+#[inline(always)]
+fn render_item<P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
+    r: &mut ItemRunner<'_, P, T, S>,
+    ray: &Ray,
+    id: u32,
+    depth_only: bool,
+) -> RayResult {
+    let tape = &mut RenderTape(&mut *r.tape);
+    let (l, p) = (r.layout, r.params);
+    if depth_only {
+        ray_depth_forward_taped(l, p, ray, id, 0, false, r.cache, r.scratch, tape);
+    } else {
+        ray_forward_taped(l, p, ray, id, 0, false, r.cache, r.scratch, tape);
+    }
+    let out = &r.cache.out;
+    RayResult {
+        color: out.color,
+        depth: out.depth,
+        opacity: out.opacity,
+        loss: 0.0,
     }
 }
 
@@ -237,25 +245,7 @@ impl BatchJob for DepthRays<'_> {
         r: &mut ItemRunner<'_, P, T, S>,
         i: usize,
     ) -> RayResult {
-        let (ray, id) = (&self.rays[i], i as u32);
-        ray_depth_forward_taped(
-            r.layout,
-            r.params,
-            ray,
-            id,
-            0,
-            false,
-            r.cache,
-            r.scratch,
-            &mut RenderTape(&mut *r.tape),
-        );
-        let out = &r.cache.out;
-        RayResult {
-            color: out.color,
-            depth: out.depth,
-            opacity: out.opacity,
-            loss: 0.0,
-        }
+        render_item(r, &self.rays[i], i as u32, true)
     }
 
     fn summarize(results: &[RayResult], t: u32) -> StepStats {
