@@ -7,12 +7,16 @@
 //! 1.5 m depth prior (which, applied per view, is not consistent between views).
 //!
 //! The fit is plain host code (single thread, f32 accumulation in a fixed order, the core's
-//! `sdf_at` / `sdf_backward_taped` and the operations of `adam_update`), so it is
+//! `sdf_at` (in its fast form, `sdf_at_transposed`: the same bits) / `sdf_backward_taped` and
+//! the operations of `adam_update`), so it is
 //! deterministic and independent of the backend and thread count; the backend receives the
 //! fitted parameters as its initial state. Adam moments of the mapping run start at zero as
 //! before.
 
-use himap_core::field::model::{sdf_at, sdf_backward_taped, Group, ModelGradSink, SampleScratch};
+use himap_core::field::mlp::{transpose_weights, MlpScratch};
+use himap_core::field::model::{
+    sdf_at_transposed, sdf_backward_taped, Group, ModelGradSink, SampleScratch,
+};
 use himap_core::rng::SplitMix;
 use himap_core::train::adam::{AdamConfig, AdamStep};
 
@@ -66,6 +70,8 @@ pub fn fit_sphere(data: &mut ModelData, init: &SphereInit) -> f32 {
     let (mut m_mlp, mut v_mlp) = (vec![0.0f32; nm], vec![0.0f32; nm]);
     let mut rng = SplitMix::new(init.seed ^ 0x5EED_5A4E_0000_0001);
     let mut scratch = SampleScratch::new();
+    let mut act = MlpScratch::new();
+    let mut wt = vec![0.0f32; nm];
     let cfg = AdamConfig::new(init.lr);
     let n = init.points.max(1);
     let mut mse = 0.0f32;
@@ -96,6 +102,10 @@ pub fn fit_sphere(data: &mut ModelData, init: &SphereInit) -> f32 {
         let mut err = 0.0f32;
         {
             let params = data.view();
+            // The decoder's weights transposed for the fast forward (the same bits as `sdf_at`).
+            if transpose_weights(&layout.geometry_mlp, &data.params[mi], &mut wt).is_err() {
+                return f32::NAN;
+            }
             let mut sink = Grads {
                 grid: &mut g_grid,
                 mlp: &mut g_mlp,
@@ -111,19 +121,12 @@ pub fn fit_sphere(data: &mut ModelData, init: &SphereInit) -> f32 {
                 // loss can open it when a camera walks in (at -2 m, sig'(-beta s) ~ 2e-9).
                 let target = (init.radius - (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt())
                     .max(-init.solid);
-                let s = sdf_at(&layout, &params, p, &mut scratch);
+                let s = sdf_at_transposed(&layout, &params, &wt, p, &mut scratch, &mut act);
                 let r = s - target;
                 err += r * r;
-                // `sdf_at` just left this point's activations in the scratch: the backward
-                // of `sdf_backward` without evaluating the point again (same contributions).
-                sdf_backward_taped(
-                    &layout,
-                    &params,
-                    p,
-                    2.0 * r / n as f32,
-                    &scratch.mlp,
-                    &mut sink,
-                );
+                // The forward just left this point's activations in `act`: the backward of
+                // `sdf_backward` without evaluating the point again (same contributions).
+                sdf_backward_taped(&layout, &params, p, 2.0 * r / n as f32, &act, &mut sink);
             }
         }
         mse = err / n as f32;
@@ -142,6 +145,7 @@ pub fn fit_sphere(data: &mut ModelData, init: &SphereInit) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use himap_core::field::model::sdf_at;
     use himap_core::field::model::{ModelConfig, ModelLayout};
     use himap_core::Aabb;
 
