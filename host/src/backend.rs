@@ -20,7 +20,7 @@ use himap_core::train::backend::{
     copy_group, write_group, Backend, ImageStore, MapBatch, StepStats,
 };
 use himap_core::train::batch::{
-    run_items, BatchJob, DepthRays, ItemRunner, MapPixels, Rays, TripletMemo,
+    run_items, BatchJob, ItemRunner, MapPixels, RayJob, Rays, TripletMemo,
 };
 use himap_core::train::fixed;
 use himap_core::train::pixel::{PixelResult, SlotPixels};
@@ -948,7 +948,7 @@ impl Backend for ParallelCpuBackend {
         let mut stats = self.run_job(
             &Rays {
                 rays,
-                loss: Some(loss),
+                job: RayJob::Train(loss),
             },
             results,
         )?;
@@ -957,12 +957,24 @@ impl Backend for ParallelCpuBackend {
     }
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), CpuError> {
-        self.run_job(&Rays { rays, loss: None }, results)?;
+        self.run_job(
+            &Rays {
+                rays,
+                job: RayJob::Render,
+            },
+            results,
+        )?;
         Ok(())
     }
 
     fn render_depth(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), CpuError> {
-        self.run_job(&DepthRays { rays }, results)?;
+        self.run_job(
+            &Rays {
+                rays,
+                job: RayJob::RenderDepth,
+            },
+            results,
+        )?;
         Ok(())
     }
 

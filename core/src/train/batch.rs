@@ -162,14 +162,25 @@ impl<T: SampleTape> SampleTape for RenderTape<'_, T> {
     }
 }
 
-/// Rays: a training step ([`ray_train`] for every ray, with `loss`) or, without a loss, a
-/// render at the bins' centres (no jitter; the sink receives nothing).
+/// What a [`Rays`] job does with each ray.
+#[derive(Clone, Copy)]
+pub enum RayJob<'a> {
+    /// A training step: [`ray_train`] with this loss.
+    Train(&'a LossConfig),
+    /// A render at the bins' centres (no jitter; the sink receives nothing).
+    Render,
+    /// A render of depth and opacity alone ([`ray_depth_forward_taped`]): the depth and
+    /// opacity bits of [`RayJob::Render`], colour 0.
+    RenderDepth,
+}
+
+/// Rays: a training step, a render or a depth-only render of every ray (see [`RayJob`]).
 #[derive(Clone, Copy)]
 pub struct Rays<'a> {
     /// The batch's rays (item `i` is ray `i`).
     pub rays: &'a [Ray],
-    /// The training loss, or `None` for a render.
-    pub loss: Option<&'a LossConfig>,
+    /// What is done with them.
+    pub job: RayJob<'a>,
 }
 
 impl BatchJob for Rays<'_> {
@@ -186,66 +197,27 @@ impl BatchJob for Rays<'_> {
         i: usize,
     ) -> RayResult {
         let (ray, id) = (&self.rays[i], i as u32);
-        let Some(loss) = self.loss else {
-            return render_item(r, ray, id, false);
-        };
-        ray_train(
-            r.layout, r.params, ray, id, loss, r.cache, r.scratch, r.tape, r.sink,
-        )
-    }
-
-    fn summarize(results: &[RayResult], t: u32) -> StepStats {
-        summarize(results, t)
-    }
-}
-
-/// Renders ray `id` at the bins' centres through a [`RenderTape`]: colour, depth and opacity
-/// ([`ray_forward_taped`]), or depth and opacity alone ([`ray_depth_forward_taped`]).
-#[inline(always)]
-fn render_item<P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
-    r: &mut ItemRunner<'_, P, T, S>,
-    ray: &Ray,
-    id: u32,
-    depth_only: bool,
-) -> RayResult {
-    let tape = &mut RenderTape(&mut *r.tape);
-    let (l, p) = (r.layout, r.params);
-    if depth_only {
-        ray_depth_forward_taped(l, p, ray, id, 0, false, r.cache, r.scratch, tape);
-    } else {
-        ray_forward_taped(l, p, ray, id, 0, false, r.cache, r.scratch, tape);
-    }
-    let out = &r.cache.out;
-    RayResult {
-        color: out.color,
-        depth: out.depth,
-        opacity: out.opacity,
-        loss: 0.0,
-    }
-}
-
-/// A depth-only render ([`ray_depth_forward_taped`] at the bins' centres): the depth and
-/// opacity bits of a [`Rays`] render, colour 0, the sink receives nothing.
-#[derive(Clone, Copy)]
-pub struct DepthRays<'a> {
-    /// The rays (item `i` is ray `i`).
-    pub rays: &'a [Ray],
-}
-
-impl BatchJob for DepthRays<'_> {
-    type Output = RayResult;
-
-    fn len(&self) -> usize {
-        self.rays.len()
-    }
-
-    #[inline(always)]
-    fn run<P: ParamRead + ?Sized, T: SampleTape, S: ModelGradSink>(
-        &self,
-        r: &mut ItemRunner<'_, P, T, S>,
-        i: usize,
-    ) -> RayResult {
-        render_item(r, &self.rays[i], i as u32, true)
+        let (l, p) = (r.layout, r.params);
+        match self.job {
+            RayJob::Train(loss) => {
+                return ray_train(l, p, ray, id, loss, r.cache, r.scratch, r.tape, r.sink);
+            }
+            RayJob::Render => {
+                let tape = &mut RenderTape(&mut *r.tape);
+                ray_forward_taped(l, p, ray, id, 0, false, r.cache, r.scratch, tape);
+            }
+            RayJob::RenderDepth => {
+                let tape = &mut RenderTape(&mut *r.tape);
+                ray_depth_forward_taped(l, p, ray, id, 0, false, r.cache, r.scratch, tape);
+            }
+        }
+        let out = &r.cache.out;
+        RayResult {
+            color: out.color,
+            depth: out.depth,
+            opacity: out.opacity,
+            loss: 0.0,
+        }
     }
 
     fn summarize(results: &[RayResult], t: u32) -> StepStats {

@@ -10,7 +10,7 @@ use crate::field::model::{
 };
 use crate::train::adam::{self, AdamConfig, AdamStep};
 use crate::train::backend::{copy_group, write_group, Backend, ImageStore, MapBatch, StepStats};
-use crate::train::batch::{run_items, BatchJob, ItemRunner, MapPixels, Rays, TripletMemo};
+use crate::train::batch::{run_items, BatchJob, ItemRunner, MapPixels, RayJob, Rays, TripletMemo};
 use crate::train::fixed;
 use crate::train::pixel::PixelResult;
 use crate::{Error, NullSink};
@@ -146,7 +146,7 @@ impl<'a> CpuBackend<'a> {
         let (params, mut sink) = params_and_sink(&mut self.groups);
         let job = Rays {
             rays,
-            loss: Some(loss),
+            job: RayJob::Train(loss),
         };
         drive(&self.layout, &params, &mut sink, &job, results, self.t)
     }
@@ -256,7 +256,10 @@ impl Backend for CpuBackend<'_> {
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), Error> {
         let (params, _) = params_and_sink(&mut self.groups);
-        let job = Rays { rays, loss: None };
+        let job = Rays {
+            rays,
+            job: RayJob::Render,
+        };
         drive(&self.layout, &params, &mut NullSink, &job, results, self.t)?;
         Ok(())
     }
