@@ -12,7 +12,7 @@ use std::sync::{Mutex, MutexGuard};
 use himap_core::field::mlp::{MlpScratch, MAX_WIDTH};
 use himap_core::field::model::{
     color_at_transposed, sdf_at_transposed, Group, LossConfig, ModelGradSink, ModelLayout, Params,
-    PerGroup, Ray, RayCache, RayResult, SampleScratch, StoredTape, NUM_GROUPS,
+    PerGroup, Ray, RayCache, RayResult, RowHint, SampleScratch, StoredTape, NUM_GROUPS,
 };
 use himap_core::field::render::MAX_SAMPLES;
 use himap_core::train::adam::{AdamConfig, AdamStep};
@@ -310,7 +310,12 @@ impl Worker {
     fn run<R>(
         &mut self,
         wt: &[Vec<f32>; 2],
-        f: impl FnOnce(&mut RayCache, &mut SampleScratch, &mut StoredTape<'_>, &mut WorkerSink<'_>) -> R,
+        f: impl FnOnce(
+            &mut RayCache,
+            &mut SampleScratch,
+            &mut StoredTape<'_, HostRows>,
+            &mut WorkerSink<'_>,
+        ) -> R,
     ) -> R {
         let mut tape = StoredTape {
             geometry: &mut self.tape_geometry,
@@ -318,6 +323,7 @@ impl Worker {
             geometry_wt: &wt[0],
             appearance_wt: &wt[1],
             grid_rows: &self.grid_rows,
+            hint: std::marker::PhantomData,
         };
         let mut sink = WorkerSink {
             grads: &mut self.grads,
@@ -399,6 +405,21 @@ impl SlotPixels for HostPixels<'_> {
         if let Some(row) = self.0.get(i..) {
             prefetch_line(row);
         }
+    }
+}
+
+/// The CPU's [`RowHint`]: the next sample's rows of the appearance grid's finest level, two
+/// cache lines each (a row and, for 16 channels, its neighbour along x, the next corner).
+/// One sample ahead: side by side on the paper step (`scripts/ab_bench.sh`, one thread each),
+/// the forward runs about 10 % more samples per second (ARCHITECTURE.md).
+pub(crate) struct HostRows;
+
+impl RowHint for HostRows {
+    const ACTIVE: bool = true;
+
+    #[inline(always)]
+    fn prefetch(row: &[f32]) {
+        prefetch_rows(row);
     }
 }
 

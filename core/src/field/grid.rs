@@ -975,6 +975,24 @@ pub fn for_each_row(layout: &GridLayout, p: [f32; 3], mut f: impl FnMut(usize)) 
     }
 }
 
+/// Calls `f` with the first index of each of the 12 plane rows (`nc` channels each) that
+/// [`grid_forward_rows`] reads at `p` on level `l` of a factorized grid (nothing for dense
+/// grids or a level past the last). The CPU's cache hint uses it for the finest level, whose
+/// planes are the ones too large for the caches; it computes no feature.
+#[inline(always)]
+pub fn for_each_plane_row(layout: &GridLayout, l: usize, p: [f32; 3], mut f: impl FnMut(usize)) {
+    let (nl, nc) = kernel_dims(layout);
+    if layout.kind == GridKind::Dense || l >= nl {
+        return;
+    }
+    let (xn, _) = normalize_with_mask(&layout.aabb, p);
+    let lv = &layout.level[l];
+    let k = vm_corners(lv, nc, &locate(xn, lv.res));
+    for o in k.xy.into_iter().chain(k.xz).chain(k.yz) {
+        f(o);
+    }
+}
+
 /// The parameter contributions of [`grid_backward`] (not dL/dp), row by row: for each of a
 /// level's 18 corners one [`GradSink::add_scaled`] over the channels, each contribution the
 /// same product as in [`grid_backward`] (a product of two factors either way round is the same
@@ -1195,6 +1213,15 @@ mod tests {
                 grid_backward_rows(&g, &params, p, &d_feat, &mut written);
                 let mut named = std::vec::Vec::new();
                 for_each_row(&g, p, |o| named.push(o));
+                // Each level's plane rows: the first 12 of its 18, in the same order.
+                for l in 0..g.levels as usize {
+                    let mut planes = std::vec::Vec::new();
+                    for_each_plane_row(&g, l, p, |o| planes.push(o));
+                    assert_eq!(planes[..], named[18 * l..18 * l + 12], "{p:?} level {l}");
+                }
+                let mut none = 0;
+                for_each_plane_row(&g, g.levels as usize, p, |_| none += 1);
+                assert_eq!(none, 0);
                 written.0.sort_unstable();
                 named.sort_unstable();
                 assert_eq!(named.len(), 18 * g.levels as usize);

@@ -1031,7 +1031,37 @@ pub trait SampleTape {
         s: &mut SampleScratch,
         sink: &mut S,
     );
+
+    /// A cache hint: the forward of the sample at depth `t` comes next (nothing by default;
+    /// no value changes).
+    #[inline(always)]
+    fn prefetch<P: ParamRead + ?Sized>(
+        &self,
+        _layout: &ModelLayout,
+        _params: &Params<'_, P>,
+        _ray: &Ray,
+        _t: f32,
+    ) {
+    }
 }
+
+/// A CPU's cache hint for parameter rows, which `himap-core` cannot issue itself (it is
+/// `unsafe`-free and runs on GPUs): [`StoredTape`] names to it, one sample ahead, the rows of
+/// the appearance grid's finest level (the planes too large for the caches) that the next
+/// sample's forward reads. The hint changes no value.
+pub trait RowHint {
+    /// Whether [`Self::prefetch`] does anything (tapes without a hint skip naming the rows).
+    const ACTIVE: bool = false;
+
+    /// Asks for the start of `row` to be brought towards the cache.
+    #[inline(always)]
+    fn prefetch(_row: &[f32]) {}
+}
+
+/// No cache hint.
+pub struct NoHint;
+
+impl RowHint for NoHint {}
 
 /// The tape that keeps nothing: the backward recomputes each sample's forward.
 pub struct Recompute;
@@ -1073,7 +1103,7 @@ impl SampleTape for Recompute {
 /// samples past the end are recomputed). The forward runs the decoders with
 /// [`mlp::mlp_forward_transposed`] on `geometry_wt` / `appearance_wt`, the decoders' weights
 /// as [`mlp::transpose_weights`] lays them out (same bits as [`mlp::mlp_forward`]).
-pub struct StoredTape<'a> {
+pub struct StoredTape<'a, H: RowHint = NoHint> {
     /// Geometry decoder activations, one entry per sample.
     pub geometry: &'a mut [MlpScratch],
     /// Appearance decoder activations, one entry per sample.
@@ -1085,9 +1115,34 @@ pub struct StoredTape<'a> {
     /// Factor rows the grids' backward reuses from sample to sample
     /// ([`grid::grid_backward_rows_with`]; any contents).
     pub grid_rows: &'a core::cell::RefCell<[[f32; MAX_WIDTH]; 6]>,
+    /// The cache hint ([`NoHint`] or the CPU's).
+    pub hint: core::marker::PhantomData<H>,
 }
 
-impl SampleTape for StoredTape<'_> {
+impl<H: RowHint> SampleTape for StoredTape<'_, H> {
+    #[inline(always)]
+    fn prefetch<P: ParamRead + ?Sized>(
+        &self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        t: f32,
+    ) {
+        if !H::ACTIVE {
+            return;
+        }
+        let Some(sl) = params.appearance_grid.as_slice() else {
+            return;
+        };
+        let g = &layout.appearance_grid;
+        let finest = (g.levels as usize).saturating_sub(1);
+        grid::for_each_plane_row(g, finest, point_on_ray(ray, t), |o| {
+            if let Some(row) = sl.get(o..) {
+                H::prefetch(row);
+            }
+        });
+    }
+
     #[inline(always)]
     fn forward<P: ParamRead + ?Sized>(
         &mut self,
@@ -1368,6 +1423,9 @@ fn ray_forward_with<P: ParamRead + ?Sized, T: SampleTape, const DEPTH_ONLY: bool
     let mut trans = 1.0f32;
     let mut i = 0;
     while i < n {
+        if !DEPTH_ONLY && i + 1 < n {
+            tape.prefetch(layout, params, ray, cache.t[i + 1]);
+        }
         let (sdf, rgb) = if DEPTH_ONLY {
             let sdf = tape.sdf_forward(layout, params, ray, i, cache.t[i], s);
             (sdf, [0.0; 3])
@@ -1782,6 +1840,7 @@ mod tests {
             geometry_wt: &wt[0],
             appearance_wt: &wt[1],
             grid_rows: &rows,
+            hint: core::marker::PhantomData::<NoHint>,
         };
         let mut total = 0.0f64;
         for (i, r) in rays.iter().enumerate() {
@@ -1933,6 +1992,7 @@ mod tests {
                                     geometry_wt: &wt[0],
                                     appearance_wt: &wt[1],
                                     grid_rows: &rows,
+                                    hint: core::marker::PhantomData::<NoHint>,
                                 };
                                 ray_depth_forward_taped(
                                     &layout, &params, r, i as u32, 4, jitter, &mut d, &mut s,

@@ -160,6 +160,17 @@ impl<T: SampleTape> SampleTape for RenderTape<'_, T> {
     ) {
         sample_backward(layout, params, ray, t, d_sdf, d_rgb, s, sink);
     }
+
+    #[inline(always)]
+    fn prefetch<P: ParamRead + ?Sized>(
+        &self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        t: f32,
+    ) {
+        self.0.prefetch(layout, params, ray, t);
+    }
 }
 
 /// What a [`Rays`] job does with each ray.
