@@ -951,34 +951,11 @@ fn narrow_forward(
     true
 }
 
-/// Calls `f` with the first index of every row of channels that [`grid_forward_rows`] reads
-/// and [`grid_backward_rows`] writes at `p` (18 corners per factorized level; nothing for
-/// dense grids). Host-side cache hints use it; it computes no feature.
-#[inline(always)]
-pub fn for_each_row(layout: &GridLayout, p: [f32; 3], mut f: impl FnMut(usize)) {
-    if layout.kind == GridKind::Dense {
-        return;
-    }
-    let (nl, nc) = kernel_dims(layout);
-    let (xn, _) = normalize_with_mask(&layout.aabb, p);
-    let mut l = 0;
-    while l < nl {
-        let lv = &layout.level[l];
-        let k = vm_corners(lv, nc, &locate(xn, lv.res));
-        for o in k.xy.into_iter().chain(k.xz).chain(k.yz) {
-            f(o);
-        }
-        for o in k.x.into_iter().chain(k.y).chain(k.z) {
-            f(o);
-        }
-        l += 1;
-    }
-}
-
 /// Calls `f` with the first index of each of the 12 plane rows (`nc` channels each) that
-/// [`grid_forward_rows`] reads at `p` on level `l` of a factorized grid (nothing for dense
-/// grids or a level past the last). The CPU's cache hint uses it for the finest level, whose
-/// planes are the ones too large for the caches; it computes no feature.
+/// [`grid_forward_rows`] reads and [`grid_backward_rows`] writes at `p` on level `l` of a
+/// factorized grid (nothing for dense grids or a level past the last). The CPU's cache hints
+/// use it for the finest levels, whose planes are the tensors too large for the caches; it
+/// computes no feature.
 #[inline(always)]
 pub fn for_each_plane_row(layout: &GridLayout, l: usize, p: [f32; 3], mut f: impl FnMut(usize)) {
     let (nl, nc) = kernel_dims(layout);
@@ -1191,7 +1168,31 @@ mod tests {
         }
     }
 
-    /// The prefetch hint names exactly the rows the row-wise backward writes, at every level,
+    /// Calls `f` with the first index of every row of channels that [`grid_forward_rows`] reads
+    /// and [`grid_backward_rows`] writes at `p` (18 corners per factorized level; nothing for
+    /// dense grids): the reference the plane rows are tested against.
+    fn for_each_row(layout: &GridLayout, p: [f32; 3], mut f: impl FnMut(usize)) {
+        if layout.kind == GridKind::Dense {
+            return;
+        }
+        let (nl, nc) = kernel_dims(layout);
+        let (xn, _) = normalize_with_mask(&layout.aabb, p);
+        let mut l = 0;
+        while l < nl {
+            let lv = &layout.level[l];
+            let k = vm_corners(lv, nc, &locate(xn, lv.res));
+            for o in k.xy.into_iter().chain(k.xz).chain(k.yz) {
+                f(o);
+            }
+            for o in k.x.into_iter().chain(k.y).chain(k.z) {
+                f(o);
+            }
+            l += 1;
+        }
+    }
+
+    /// The rows named per level are exactly the rows the row-wise backward writes, and the
+    /// cache hints' plane rows are each level's first 12 of them, at every level,
     /// for points inside, on the faces of and outside the box.
     #[test]
     fn for_each_row_names_the_backward_rows() {

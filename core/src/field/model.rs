@@ -442,7 +442,8 @@ pub struct Params<'a, P: ParamRead + ?Sized> {
 /// Receives gradient contributions for all groups.
 pub trait ModelGradSink {
     /// Whether [`Self::prefetch`] does anything (the backward then announces each sample's
-    /// gradient rows one sample ahead; sinks without caches leave it false and pay nothing).
+    /// gradient rows of the grids' finest levels one sample ahead; sinks without caches leave
+    /// it false and pay nothing).
     const PREFETCH: bool = false;
 
     /// Adds one gradient contribution `g` to parameter `i` of `group`.
@@ -1599,8 +1600,13 @@ pub fn ray_composite_backward(
     );
 }
 
-/// Announces to `sink` the grid rows the backward of the sample at depth `t` adds into (the
-/// same skips as [`sample_backward`]): a cache hint, no value changes.
+/// The geometry grid's finest levels whose gradient rows the backward announces.
+const GEOMETRY_HINT_LEVELS: usize = 2;
+
+/// Announces to `sink` the plane rows of the grids' finest levels (the geometry's last two,
+/// the appearance's last) that the backward of the sample at depth `t` adds into (the same
+/// skips as [`sample_backward`]): a cache hint, no value changes. The coarser levels' rows and
+/// the lines stay cached; naming them too cost as much as it saved (ARCHITECTURE.md).
 #[inline(always)]
 fn prefetch_sample_grads<S: ModelGradSink>(
     layout: &ModelLayout,
@@ -1612,14 +1618,16 @@ fn prefetch_sample_grads<S: ModelGradSink>(
 ) {
     let p = point_on_ray(ray, t);
     if d_sdf != 0.0 {
-        grid::for_each_row(&layout.geometry_grid, p, |o| {
-            sink.prefetch(Group::GeometryGrid, o)
-        });
+        let g = &layout.geometry_grid;
+        for l in (g.levels as usize).saturating_sub(GEOMETRY_HINT_LEVELS)..g.levels as usize {
+            grid::for_each_plane_row(g, l, p, |o| sink.prefetch(Group::GeometryGrid, o));
+        }
     }
     if d_rgb[0] != 0.0 || d_rgb[1] != 0.0 || d_rgb[2] != 0.0 {
-        grid::for_each_row(&layout.appearance_grid, p, |o| {
-            sink.prefetch(Group::AppearanceGrid, o)
-        });
+        let g = &layout.appearance_grid;
+        for l in (g.levels as usize).saturating_sub(1)..g.levels as usize {
+            grid::for_each_plane_row(g, l, p, |o| sink.prefetch(Group::AppearanceGrid, o));
+        }
     }
 }
 
