@@ -11,8 +11,9 @@ use std::sync::{Mutex, MutexGuard};
 
 use himap_core::field::mlp::{MlpScratch, MAX_WIDTH};
 use himap_core::field::model::{
-    color_at_transposed, sdf_at_transposed, Group, LossConfig, ModelGradSink, ModelLayout, Params,
-    PerGroup, Ray, RayCache, RayResult, RowHint, SampleScratch, StoredTape, NUM_GROUPS,
+    color_at_transposed, grid_tape_len, sdf_at_transposed, Group, LossConfig, ModelGradSink,
+    ModelLayout, Params, PerGroup, Ray, RayCache, RayResult, RowHint, SampleScratch, StoredTape,
+    NUM_GROUPS,
 };
 use himap_core::field::render::MAX_SAMPLES;
 use himap_core::train::adam::{AdamConfig, AdamStep};
@@ -290,10 +291,12 @@ struct Worker {
     tape_appearance: Vec<MlpScratch>,
     /// The grids' backward factor rows, reused from sample to sample.
     grid_rows: Box<std::cell::RefCell<[[f32; MAX_WIDTH]; 6]>>,
+    /// The grids' term factors of every sample of a ray ([`StoredTape::grid_kept`]).
+    grid_kept: Vec<f32>,
 }
 
 impl Worker {
-    fn new(lens: [usize; NUM_GROUPS]) -> Self {
+    fn new(lens: [usize; NUM_GROUPS], kept_per_sample: usize) -> Self {
         Self {
             grads: lens.map(|n| vec![0; n]),
             touched: lens.map(|n| vec![false; n.div_ceil(BLOCK)]),
@@ -302,6 +305,7 @@ impl Worker {
             tape_geometry: vec![MlpScratch::new(); MAX_SAMPLES],
             tape_appearance: vec![MlpScratch::new(); MAX_SAMPLES],
             grid_rows: Box::new(std::cell::RefCell::new([[0.0; MAX_WIDTH]; 6])),
+            grid_kept: vec![0.0; MAX_SAMPLES * kept_per_sample],
         }
     }
 
@@ -323,6 +327,7 @@ impl Worker {
             geometry_wt: &wt[0],
             appearance_wt: &wt[1],
             grid_rows: &self.grid_rows,
+            grid_kept: &mut self.grid_kept,
             hint: std::marker::PhantomData,
         };
         let mut sink = WorkerSink {
@@ -638,7 +643,9 @@ impl ParallelCpuBackend {
             sum_dirty: live.clone().map(|b| vec![false; b.len()]),
             live,
             live_stale: false,
-            workers: (0..n).map(|_| Mutex::new(Worker::new(lens))).collect(),
+            workers: (0..n)
+                .map(|_| Mutex::new(Worker::new(lens, grid_tape_len(&data.layout))))
+                .collect(),
             grads: lens.map(|n| vec![0; n]),
             data,
             adam,
@@ -671,7 +678,8 @@ impl ParallelCpuBackend {
     pub fn work_bytes(&self) -> usize {
         let lens = self.data.layout.group_lens();
         let grad: usize = lens.iter().sum::<usize>() * 8;
-        let tape = 2 * MAX_SAMPLES * std::mem::size_of::<MlpScratch>();
+        let tape = 2 * MAX_SAMPLES * std::mem::size_of::<MlpScratch>()
+            + MAX_SAMPLES * grid_tape_len(&self.data.layout) * 4;
         grad * (self.workers.len() + 1) + tape * self.workers.len()
     }
 

@@ -951,6 +951,140 @@ fn narrow_forward(
     true
 }
 
+/// Length of the record [`grid_forward_rows_keep`] fills for `layout`: the six term factors
+/// of every feature (0 for a dense grid, whose backward does not use them).
+pub fn kept_len(layout: &GridLayout) -> usize {
+    let (nl, nc) = kernel_dims(layout);
+    if layout.kind == GridKind::Dense || nc > crate::field::mlp::MAX_WIDTH {
+        0
+    } else {
+        6 * nl * nc
+    }
+}
+
+/// [`grid_forward_rows`] (the same features, the same bits) that also keeps, for the
+/// backward, each feature's term factors: the other factor of each of its six products (planes
+/// yz, xz, xy, then lines z, y, x: [`term_factors`]' order), `kept[j * nf + i]` for feature `i`
+/// of `nf = levels * channels`. The backward multiplies them by the cotangent instead of
+/// reading the 18 rows and interpolating again ([`grid_backward_rows_kept`]). False when
+/// nothing was kept (a dense grid, a corrupted layout, `kept` shorter than [`kept_len`]);
+/// the features are right either way. Host-side.
+#[inline]
+pub fn grid_forward_rows_keep(
+    layout: &GridLayout,
+    params: &[f32],
+    p: [f32; 3],
+    out: &mut [f32; MAX_GRID_FEATURES],
+    kept: &mut [f32],
+) -> bool {
+    let (nl, nc) = kernel_dims(layout);
+    let nf = nl * nc;
+    let len = kept_len(layout);
+    if len == 0 || kept.len() < len {
+        grid_forward_rows(layout, params, p, out);
+        return false;
+    }
+    let (xn, _) = normalize_with_mask(&layout.aabb, p);
+    *out = [0.0; MAX_GRID_FEATURES];
+    if nc < NARROW_CHANNELS && nf <= LANES {
+        let Some(g) = NarrowLanes::gather(layout, params, xn) else {
+            grid_forward(layout, params, p, out);
+            return false;
+        };
+        let mut o = [0.0f32; LANES];
+        let mut t = [[0.0f32; LANES]; 6];
+        for (i, o) in o.iter_mut().enumerate() {
+            let (line, plane) = g.interp(i);
+            *o = line[0] * plane[2] + line[1] * plane[1] + line[2] * plane[0];
+            for (t, v) in t.iter_mut().zip(factor_terms(line, plane)) {
+                t[i] = v;
+            }
+        }
+        out[..nf].copy_from_slice(&o[..nf]);
+        for (dst, t) in kept.chunks_exact_mut(nf).zip(&t) {
+            dst.copy_from_slice(&t[..nf]);
+        }
+        return true;
+    }
+    let mut l = 0;
+    while l < nl {
+        let lv = &layout.level[l];
+        let cell = locate(xn, lv.res);
+        let Some(r) = vm_rows(params, &vm_corners(lv, nc, &cell), nc) else {
+            grid_forward(layout, params, p, out);
+            return false;
+        };
+        let (k0, rest) = kept.split_at_mut(nf);
+        let (k1, rest) = rest.split_at_mut(nf);
+        let (k2, rest) = rest.split_at_mut(nf);
+        let (k3, rest) = rest.split_at_mut(nf);
+        let (k4, k5) = rest.split_at_mut(nf);
+        let at = l * nc..(l + 1) * nc;
+        let ks = [
+            &mut k0[at.clone()],
+            &mut k1[at.clone()],
+            &mut k2[at.clone()],
+            &mut k3[at.clone()],
+            &mut k4[at.clone()],
+            &mut k5[at.clone()],
+        ];
+        let [k0, k1, k2, k3, k4, k5] = ks;
+        for (c, o) in out[at].iter_mut().enumerate() {
+            let (line, plane) = vm_interp_rows(&r, c, cell.f);
+            *o = line[0] * plane[2] + line[1] * plane[1] + line[2] * plane[0];
+            let f = factor_terms(line, plane);
+            k0[c] = f[0];
+            k1[c] = f[1];
+            k2[c] = f[2];
+            k3[c] = f[3];
+            k4[c] = f[4];
+            k5[c] = f[5];
+        }
+        l += 1;
+    }
+    true
+}
+
+/// The other factor of each of a feature's six terms, in [`term_factors`]' order.
+#[inline(always)]
+fn factor_terms(line: [f32; 3], plane: [f32; 3]) -> [f32; 6] {
+    [plane[2], plane[1], plane[0], line[2], line[1], line[0]]
+}
+
+/// [`grid_backward_rows_with`] from the factors [`grid_forward_rows_keep`] kept at the same
+/// `p` (it returned true): each row value is the cotangent times the kept factor, the product
+/// [`term_factors`] forms from the interpolation it repeats (the same f32 either way round),
+/// and the same row calls follow, so the same integer sums (tested).
+#[inline]
+pub fn grid_backward_rows_kept<S: GradSink>(
+    layout: &GridLayout,
+    p: [f32; 3],
+    d_feat: &[f32; MAX_GRID_FEATURES],
+    kept: &[f32],
+    sink: &mut S,
+    gl: &mut [[f32; crate::field::mlp::MAX_WIDTH]; 6],
+) {
+    let (nl, nc) = kernel_dims(layout);
+    let nf = nl * nc;
+    let (xn, _) = normalize_with_mask(&layout.aabb, p);
+    let mut l = 0;
+    while l < nl {
+        let lv = &layout.level[l];
+        let cell = locate(xn, lv.res);
+        let k = vm_corners(lv, nc, &cell);
+        let at = l * nc..(l + 1) * nc;
+        let d = &d_feat[at.clone()];
+        for (j, row) in gl.iter_mut().enumerate() {
+            let src = &kept[j * nf..(j + 1) * nf][at.clone()];
+            for ((r, &g), &f) in row[..nc].iter_mut().zip(d).zip(src) {
+                *r = g * f;
+            }
+        }
+        level_rows_backward(sink, &k, cell.f, gl, nc);
+        l += 1;
+    }
+}
+
 /// Calls `f` with the first index of each of the 12 plane rows (`nc` channels each) that
 /// [`grid_forward_rows`] reads and [`grid_backward_rows`] writes at `p` on level `l` of a
 /// factorized grid (nothing for dense grids or a level past the last). The CPU's cache hints
@@ -1941,11 +2075,47 @@ mod tests {
                 let mut gl = [[fill; crate::field::mlp::MAX_WIDTH]; 6];
                 grid_backward_rows_with(&layout, &params, p, &d, &mut s3, &mut gl);
                 assert_eq!(s2.adds, s3.adds, "{p:?}");
+                // The features with the term factors kept, and the backward from them: the
+                // same features and the same calls (a kept buffer of stale contents).
+                let mut kept = vec![fill; kept_len(&layout) + 3];
+                let mut c = [1.0f32; MAX_GRID_FEATURES];
+                assert!(grid_forward_rows_keep(
+                    &layout, &params, p, &mut c, &mut kept
+                ));
+                assert_eq!(a.map(f32::to_bits), c.map(f32::to_bits), "{p:?}");
+                let mut s4 = RecordSink { adds: Vec::new() };
+                grid_backward_rows_kept(&layout, p, &d, &kept, &mut s4, &mut gl);
+                assert_eq!(s2.adds, s4.adds, "{p:?}");
+                // Too short a buffer keeps nothing and still gives the features.
+                let short = kept_len(&layout) - 1;
+                assert!(!grid_forward_rows_keep(
+                    &layout,
+                    &params,
+                    p,
+                    &mut c,
+                    &mut kept[..short]
+                ));
+                assert_eq!(a.map(f32::to_bits), c.map(f32::to_bits), "{p:?}");
                 s1.adds.sort_unstable();
                 s2.adds.sort_unstable();
                 assert_eq!(s1.adds, s2.adds, "{p:?}");
             }
         }
+    }
+
+    #[test]
+    fn dense_grids_keep_nothing() {
+        let g = small(GridKind::Dense);
+        let params = random_params(&g, 4);
+        assert_eq!(kept_len(&g), 0);
+        let mut kept = vec![0.0f32; 64];
+        let mut out = [0.0f32; MAX_GRID_FEATURES];
+        let p = [0.3, 0.7, 0.2];
+        assert!(!grid_forward_rows_keep(&g, &params, p, &mut out, &mut kept));
+        assert_eq!(
+            out.map(f32::to_bits),
+            forward(&g, &params, p).map(f32::to_bits)
+        );
     }
 
     #[test]

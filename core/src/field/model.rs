@@ -1116,8 +1116,36 @@ pub struct StoredTape<'a, H: RowHint = NoHint> {
     /// Factor rows the grids' backward reuses from sample to sample
     /// ([`grid::grid_backward_rows_with`]; any contents).
     pub grid_rows: &'a core::cell::RefCell<[[f32; MAX_WIDTH]; 6]>,
+    /// The grids' term factors of every sample, [`grid_tape_len`] floats per sample: whether
+    /// each grid's were kept (1 or 0), then the geometry's and the appearance's
+    /// ([`grid::grid_forward_rows_keep`]), which the backward multiplies by the features'
+    /// cotangents instead of interpolating the grids again. May be empty (the backward then
+    /// interpolates; samples past its end likewise).
+    pub grid_kept: &'a mut [f32],
     /// The cache hint ([`NoHint`] or the CPU's).
     pub hint: core::marker::PhantomData<H>,
+}
+
+/// Floats per sample of [`StoredTape::grid_kept`] for `layout`: two flags, then the term
+/// factors of the geometry and of the appearance grid ([`grid::kept_len`]).
+pub fn grid_tape_len(layout: &ModelLayout) -> usize {
+    2 + grid::kept_len(&layout.geometry_grid) + grid::kept_len(&layout.appearance_grid)
+}
+
+/// One sample's record of [`StoredTape::grid_kept`], split into its flags, the geometry's and
+/// the appearance's factors; `None` when the slice does not hold sample `i`.
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+fn kept_record<'k>(
+    layout: &ModelLayout,
+    kept: &'k mut [f32],
+    i: usize,
+) -> Option<(&'k mut [f32], &'k mut [f32], &'k mut [f32])> {
+    let n = grid_tape_len(layout);
+    let rec = kept.get_mut(i * n..(i + 1) * n)?;
+    let (flags, rest) = rec.split_at_mut(2);
+    let (geo, app) = rest.split_at_mut(grid::kept_len(&layout.geometry_grid));
+    Some((flags, geo, app))
 }
 
 impl<H: RowHint> SampleTape for StoredTape<'_, H> {
@@ -1158,11 +1186,18 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
             return sample_forward(layout, params, ray, t, s);
         };
         let p = point_on_ray(ray, t);
-        let sdf = sdf_eval_transposed(layout, params, self.geometry_wt, p, s, g);
-        (
-            sdf,
-            color_eval_transposed(layout, params, self.appearance_wt, p, s, a),
-        )
+        let Some((flags, kg, ka)) = kept_record(layout, self.grid_kept, i) else {
+            let sdf = sdf_eval_transposed(layout, params, self.geometry_wt, p, s, g);
+            return (
+                sdf,
+                color_eval_transposed(layout, params, self.appearance_wt, p, s, a),
+            );
+        };
+        let (sdf, keep_g) = sdf_eval_keep(layout, params, self.geometry_wt, p, s, g, kg);
+        let (rgb, keep_a) = color_eval_keep(layout, params, self.appearance_wt, p, s, a, ka);
+        flags[0] = if keep_g { 1.0 } else { 0.0 };
+        flags[1] = if keep_a { 1.0 } else { 0.0 };
+        (sdf, rgb)
     }
 
     #[inline(always)]
@@ -1179,7 +1214,13 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
         let Some(g) = self.geometry.get_mut(i) else {
             return sdf_at(layout, params, p, s);
         };
-        sdf_eval_transposed(layout, params, self.geometry_wt, p, s, g)
+        let Some((flags, kg, _)) = kept_record(layout, self.grid_kept, i) else {
+            return sdf_eval_transposed(layout, params, self.geometry_wt, p, s, g);
+        };
+        let (sdf, keep_g) = sdf_eval_keep(layout, params, self.geometry_wt, p, s, g, kg);
+        flags[0] = if keep_g { 1.0 } else { 0.0 };
+        flags[1] = 0.0;
+        sdf
     }
 
     #[inline(always)]
@@ -1200,6 +1241,14 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
             return sample_backward(layout, params, ray, t, d_sdf, d_rgb, s, sink);
         };
         let p = point_on_ray(ray, t);
+        let n = grid_tape_len(layout);
+        let rec = self.grid_kept.get(i * n..(i + 1) * n);
+        let ng = grid::kept_len(&layout.geometry_grid);
+        // The kept factors of a grid, when the forward kept them.
+        let kept = |k: usize, range: core::ops::Range<usize>| match rec {
+            Some(r) if r[k] == 1.0 => r.get(range),
+            _ => None,
+        };
         if d_sdf != 0.0 {
             let d_feat = sdf_decoder_backward(layout, params, d_sdf, g, sink);
             let mut gs = GroupSink {
@@ -1213,6 +1262,7 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
                 &d_feat,
                 &mut gs,
                 self.grid_rows,
+                kept(0, 2..2 + ng),
             );
         }
         if d_rgb[0] != 0.0 || d_rgb[1] != 0.0 || d_rgb[2] != 0.0 {
@@ -1228,6 +1278,7 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
                 &d_feat,
                 &mut gs,
                 self.grid_rows,
+                kept(1, 2 + ng..n),
             );
         }
     }
@@ -1286,6 +1337,84 @@ fn color_eval_transposed<P: ParamRead + ?Sized>(
     ]
 }
 
+/// [`sdf_eval_transposed`] keeping the geometry grid's term factors in `kept`
+/// ([`grid::grid_forward_rows_keep`]; true when it kept them). The same bits.
+#[inline(always)]
+fn sdf_eval_keep<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    wt: &[f32],
+    p: [f32; 3],
+    s: &mut SampleScratch,
+    act: &mut MlpScratch,
+    kept: &mut [f32],
+) -> (f32, bool) {
+    let keep = grid_forward_keeping(
+        &layout.geometry_grid,
+        params.geometry_grid,
+        p,
+        &mut s.geo_feat,
+        kept,
+    );
+    geometry_input(layout, &s.geo_feat, &mut s.mlp_in);
+    let gm = &layout.geometry_mlp;
+    mlp::mlp_forward_transposed(gm, wt, &s.mlp_in, act, &mut s.mlp_out);
+    (s.mlp_out[0], keep)
+}
+
+/// [`color_eval_transposed`] keeping the appearance grid's term factors in `kept` (see
+/// [`sdf_eval_keep`]). The same bits.
+#[inline(always)]
+fn color_eval_keep<P: ParamRead + ?Sized>(
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    wt: &[f32],
+    p: [f32; 3],
+    s: &mut SampleScratch,
+    act: &mut MlpScratch,
+    kept: &mut [f32],
+) -> ([f32; 3], bool) {
+    let keep = grid_forward_keeping(
+        &layout.appearance_grid,
+        params.appearance_grid,
+        p,
+        &mut s.app_feat,
+        kept,
+    );
+    let pn = layout.config.aabb.normalize(p);
+    appearance_input(layout, pn, &s.app_feat, &mut s.mlp_in);
+    let am = &layout.appearance_mlp;
+    mlp::mlp_forward_transposed(am, wt, &s.mlp_in, act, &mut s.mlp_out);
+    let o = &s.mlp_out;
+    (
+        [
+            math::sigmoid(o[0]),
+            math::sigmoid(o[1]),
+            math::sigmoid(o[2]),
+        ],
+        keep,
+    )
+}
+
+/// [`grid::grid_forward_rows_keep`] when the parameters are one slice, [`grid::grid_forward`]
+/// (nothing kept) otherwise.
+#[inline(always)]
+fn grid_forward_keeping<P: ParamRead + ?Sized>(
+    layout: &GridLayout,
+    params: &P,
+    p: [f32; 3],
+    out: &mut [f32; MAX_GRID_FEATURES],
+    kept: &mut [f32],
+) -> bool {
+    match params.as_slice() {
+        Some(sl) => grid::grid_forward_rows_keep(layout, sl, p, out, kept),
+        None => {
+            grid::grid_forward(layout, params, p, out);
+            false
+        }
+    }
+}
+
 /// [`sdf_at`] for point queries on the CPU (mesh extraction): the grid's rows and the
 /// decoder over its transposed weights `wt` ([`mlp::transpose_weights`]), its activations
 /// into `act`. The same bits.
@@ -1338,9 +1467,13 @@ fn grid_backward_reusing<P: ParamRead + ?Sized, S: GradSink>(
     d_feat: &[f32; MAX_GRID_FEATURES],
     sink: &mut S,
     rows: &core::cell::RefCell<[[f32; MAX_WIDTH]; 6]>,
+    kept: Option<&[f32]>,
 ) {
-    match (params.as_slice(), rows.try_borrow_mut()) {
-        (Some(sl), Ok(mut gl)) => {
+    match (params.as_slice(), rows.try_borrow_mut(), kept) {
+        (Some(_), Ok(mut gl), Some(k)) => {
+            grid::grid_backward_rows_kept(layout, p, d_feat, k, sink, &mut gl)
+        }
+        (Some(sl), Ok(mut gl), None) => {
             grid::grid_backward_rows_with(layout, sl, p, d_feat, sink, &mut gl)
         }
         _ => grid_backward_any(layout, params, p, d_feat, sink),
@@ -1842,12 +1975,14 @@ mod tests {
         mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
         mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
         let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
+        let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(layout)];
         let mut tape = StoredTape {
             geometry: &mut geometry,
             appearance: &mut appearance,
             geometry_wt: &wt[0],
             appearance_wt: &wt[1],
             grid_rows: &rows,
+            grid_kept: &mut kept,
             hint: core::marker::PhantomData::<NoHint>,
         };
         let mut total = 0.0f64;
@@ -1986,6 +2121,7 @@ mod tests {
                 let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
                 let mut s = SampleScratch::new();
                 let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
+                let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(&layout)];
                 let (mut opaque, mut cut) = (0, 0);
                 for (i, r) in rays(24).iter().enumerate() {
                     for jitter in [false, true] {
@@ -2000,6 +2136,7 @@ mod tests {
                                     geometry_wt: &wt[0],
                                     appearance_wt: &wt[1],
                                     grid_rows: &rows,
+                                    grid_kept: &mut kept,
                                     hint: core::marker::PhantomData::<NoHint>,
                                 };
                                 ray_depth_forward_taped(
