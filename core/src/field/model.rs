@@ -1002,6 +1002,21 @@ pub trait SampleTape {
         s: &mut SampleScratch,
     ) -> (f32, [f32; 3]);
 
+    /// [`SampleTape::forward`] for a render, which runs no backward: the same values; the tape
+    /// need not keep what only a backward reads (by default the forward itself).
+    #[inline(always)]
+    fn render_forward<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        t: f32,
+        s: &mut SampleScratch,
+    ) -> (f32, [f32; 3]) {
+        self.forward(layout, params, ray, i, t, s)
+    }
+
     /// The signed distance of [`SampleTape::forward`] alone (the same bits), for renders that
     /// need depth and opacity only ([`ray_depth_forward_taped`]); the tape keeps nothing a
     /// backward could use.
@@ -1214,13 +1229,28 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
         let Some(g) = self.geometry.get_mut(i) else {
             return sdf_at(layout, params, p, s);
         };
-        let Some((flags, kg, _)) = kept_record(layout, self.grid_kept, i) else {
-            return sdf_eval_transposed(layout, params, self.geometry_wt, p, s, g);
+        sdf_eval_transposed(layout, params, self.geometry_wt, p, s, g)
+    }
+
+    #[inline(always)]
+    fn render_forward<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        t: f32,
+        s: &mut SampleScratch,
+    ) -> (f32, [f32; 3]) {
+        let (Some(g), Some(a)) = (self.geometry.get_mut(i), self.appearance.get_mut(i)) else {
+            return sample_forward(layout, params, ray, t, s);
         };
-        let (sdf, keep_g) = sdf_eval_keep(layout, params, self.geometry_wt, p, s, g, kg);
-        flags[0] = if keep_g { 1.0 } else { 0.0 };
-        flags[1] = 0.0;
-        sdf
+        let p = point_on_ray(ray, t);
+        let sdf = sdf_eval_transposed(layout, params, self.geometry_wt, p, s, g);
+        (
+            sdf,
+            color_eval_transposed(layout, params, self.appearance_wt, p, s, a),
+        )
     }
 
     #[inline(always)]

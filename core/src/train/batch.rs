@@ -128,7 +128,7 @@ impl<T: SampleTape> SampleTape for RenderTape<'_, T> {
         t: f32,
         s: &mut SampleScratch,
     ) -> (f32, [f32; 3]) {
-        self.0.forward(layout, params, ray, 0, t, s)
+        self.0.render_forward(layout, params, ray, 0, t, s)
     }
 
     #[inline(always)]
