@@ -1197,19 +1197,19 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
         t: f32,
         s: &mut SampleScratch,
     ) -> (f32, [f32; 3]) {
+        if kept_record(layout, self.grid_kept, i).is_none() {
+            return self.render_forward(layout, params, ray, i, t, s);
+        }
         let (Some(g), Some(a)) = (self.geometry.get_mut(i), self.appearance.get_mut(i)) else {
             return sample_forward(layout, params, ray, t, s);
         };
         let p = point_on_ray(ray, t);
         let Some((flags, kg, ka)) = kept_record(layout, self.grid_kept, i) else {
-            let sdf = sdf_eval_transposed(layout, params, self.geometry_wt, p, s, g);
-            return (
-                sdf,
-                color_eval_transposed(layout, params, self.appearance_wt, p, s, a),
-            );
+            return sample_forward(layout, params, ray, t, s);
         };
-        let (sdf, keep_g) = sdf_eval_keep(layout, params, self.geometry_wt, p, s, g, kg);
-        let (rgb, keep_a) = color_eval_keep(layout, params, self.appearance_wt, p, s, a, ka);
+        let (sdf, keep_g) = sdf_eval_keep(layout, params, self.geometry_wt, p, s, g, Some(kg));
+        let wa = self.appearance_wt;
+        let (rgb, keep_a) = color_eval_keep(layout, params, wa, p, s, a, Some(ka));
         flags[0] = if keep_g { 1.0 } else { 0.0 };
         flags[1] = if keep_a { 1.0 } else { 0.0 };
         (sdf, rgb)
@@ -1326,16 +1326,7 @@ fn sdf_eval_transposed<P: ParamRead + ?Sized>(
     s: &mut SampleScratch,
     act: &mut MlpScratch,
 ) -> f32 {
-    grid_forward_any(
-        &layout.geometry_grid,
-        params.geometry_grid,
-        p,
-        &mut s.geo_feat,
-    );
-    geometry_input(layout, &s.geo_feat, &mut s.mlp_in);
-    let gm = &layout.geometry_mlp;
-    mlp::mlp_forward_transposed(gm, wt, &s.mlp_in, act, &mut s.mlp_out);
-    s.mlp_out[0]
+    sdf_eval_keep(layout, params, wt, p, s, act, None).0
 }
 
 /// [`color_at`] in the CPU's fast forms (see [`sdf_eval_transposed`]; `wt` the appearance
@@ -1349,25 +1340,10 @@ fn color_eval_transposed<P: ParamRead + ?Sized>(
     s: &mut SampleScratch,
     act: &mut MlpScratch,
 ) -> [f32; 3] {
-    grid_forward_any(
-        &layout.appearance_grid,
-        params.appearance_grid,
-        p,
-        &mut s.app_feat,
-    );
-    let pn = layout.config.aabb.normalize(p);
-    appearance_input(layout, pn, &s.app_feat, &mut s.mlp_in);
-    let am = &layout.appearance_mlp;
-    mlp::mlp_forward_transposed(am, wt, &s.mlp_in, act, &mut s.mlp_out);
-    let o = &s.mlp_out;
-    [
-        math::sigmoid(o[0]),
-        math::sigmoid(o[1]),
-        math::sigmoid(o[2]),
-    ]
+    color_eval_keep(layout, params, wt, p, s, act, None).0
 }
 
-/// [`sdf_eval_transposed`] keeping the geometry grid's term factors in `kept`
+/// [`sdf_eval_transposed`] keeping the geometry grid's term factors in `kept` when given
 /// ([`grid::grid_forward_rows_keep`]; true when it kept them). The same bits.
 #[inline(always)]
 fn sdf_eval_keep<P: ParamRead + ?Sized>(
@@ -1377,7 +1353,7 @@ fn sdf_eval_keep<P: ParamRead + ?Sized>(
     p: [f32; 3],
     s: &mut SampleScratch,
     act: &mut MlpScratch,
-    kept: &mut [f32],
+    kept: Option<&mut [f32]>,
 ) -> (f32, bool) {
     let keep = grid_forward_keeping(
         &layout.geometry_grid,
@@ -1392,8 +1368,8 @@ fn sdf_eval_keep<P: ParamRead + ?Sized>(
     (s.mlp_out[0], keep)
 }
 
-/// [`color_eval_transposed`] keeping the appearance grid's term factors in `kept` (see
-/// [`sdf_eval_keep`]). The same bits.
+/// [`color_eval_transposed`] keeping the appearance grid's term factors in `kept` when given
+/// (see [`sdf_eval_keep`]). The same bits.
 #[inline(always)]
 fn color_eval_keep<P: ParamRead + ?Sized>(
     layout: &ModelLayout,
@@ -1402,7 +1378,7 @@ fn color_eval_keep<P: ParamRead + ?Sized>(
     p: [f32; 3],
     s: &mut SampleScratch,
     act: &mut MlpScratch,
-    kept: &mut [f32],
+    kept: Option<&mut [f32]>,
 ) -> ([f32; 3], bool) {
     let keep = grid_forward_keeping(
         &layout.appearance_grid,
@@ -1426,19 +1402,24 @@ fn color_eval_keep<P: ParamRead + ?Sized>(
     )
 }
 
-/// [`grid::grid_forward_rows_keep`] when the parameters are one slice, [`grid::grid_forward`]
-/// (nothing kept) otherwise.
+/// [`grid::grid_forward_rows_keep`] when the parameters are one slice and `kept` is given,
+/// [`grid::grid_forward_rows`] for a slice without `kept`, [`grid::grid_forward`] otherwise
+/// (the same features every way; true when the factors were kept).
 #[inline(always)]
 fn grid_forward_keeping<P: ParamRead + ?Sized>(
     layout: &GridLayout,
     params: &P,
     p: [f32; 3],
     out: &mut [f32; MAX_GRID_FEATURES],
-    kept: &mut [f32],
+    kept: Option<&mut [f32]>,
 ) -> bool {
-    match params.as_slice() {
-        Some(sl) => grid::grid_forward_rows_keep(layout, sl, p, out, kept),
-        None => {
+    match (params.as_slice(), kept) {
+        (Some(sl), Some(k)) => grid::grid_forward_rows_keep(layout, sl, p, out, k),
+        (Some(sl), None) => {
+            grid::grid_forward_rows(layout, sl, p, out);
+            false
+        }
+        (None, _) => {
             grid::grid_forward(layout, params, p, out);
             false
         }
@@ -1470,21 +1451,6 @@ pub fn color_at_transposed<P: ParamRead + ?Sized>(
     act: &mut MlpScratch,
 ) -> [f32; 3] {
     color_eval_transposed(layout, params, wt, p, s, act)
-}
-
-/// [`grid::grid_forward_rows`] when the parameters are one slice, [`grid::grid_forward`]
-/// otherwise (same bits either way).
-#[inline(always)]
-fn grid_forward_any<P: ParamRead + ?Sized>(
-    layout: &GridLayout,
-    params: &P,
-    p: [f32; 3],
-    out: &mut [f32; MAX_GRID_FEATURES],
-) {
-    match params.as_slice() {
-        Some(sl) => grid::grid_forward_rows(layout, sl, p, out),
-        None => grid::grid_forward(layout, params, p, out),
-    }
 }
 
 /// [`grid_backward_any`] with the factor rows of the slice form taken from `rows` (the same
