@@ -1197,21 +1197,21 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
         t: f32,
         s: &mut SampleScratch,
     ) -> (f32, [f32; 3]) {
-        if kept_record(layout, self.grid_kept, i).is_none() {
-            return self.render_forward(layout, params, ray, i, t, s);
-        }
         let (Some(g), Some(a)) = (self.geometry.get_mut(i), self.appearance.get_mut(i)) else {
             return sample_forward(layout, params, ray, t, s);
         };
         let p = point_on_ray(ray, t);
-        let Some((flags, kg, ka)) = kept_record(layout, self.grid_kept, i) else {
-            return sample_forward(layout, params, ray, t, s);
+        // Without a record (samples past the buffer's end) nothing is kept.
+        let (flags, kg, ka) = match kept_record(layout, self.grid_kept, i) {
+            Some((f, kg, ka)) => (Some(f), Some(kg), Some(ka)),
+            None => (None, None, None),
         };
-        let (sdf, keep_g) = sdf_eval_keep(layout, params, self.geometry_wt, p, s, g, Some(kg));
-        let wa = self.appearance_wt;
-        let (rgb, keep_a) = color_eval_keep(layout, params, wa, p, s, a, Some(ka));
-        flags[0] = if keep_g { 1.0 } else { 0.0 };
-        flags[1] = if keep_a { 1.0 } else { 0.0 };
+        let (sdf, keep_g) = sdf_eval_keep(layout, params, self.geometry_wt, p, s, g, kg);
+        let (rgb, keep_a) = color_eval_keep(layout, params, self.appearance_wt, p, s, a, ka);
+        if let Some(f) = flags {
+            f[0] = if keep_g { 1.0 } else { 0.0 };
+            f[1] = if keep_a { 1.0 } else { 0.0 };
+        }
         (sdf, rgb)
     }
 
