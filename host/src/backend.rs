@@ -838,13 +838,23 @@ impl ParallelCpuBackend {
             finite &= self.pool.install(|| {
                 items
                     .into_par_iter()
-                    .map(|(p, m, v, sum, clear, fresh, mut blocks)| {
+                    .map(|(p, m, v, sum, clear, fresh, blocks)| {
                         // Worker by worker over the whole block, then the check: loops the
                         // compiler vectorises (integer sums: the same in any order).
+                        let mut blocks = blocks.into_iter();
                         if clear {
-                            sum.fill(0);
+                            // The first worker's block becomes the sum (`0 + x` is `x`): one
+                            // pass over the block instead of a clear and an add.
+                            match blocks.next() {
+                                Some(b) => {
+                                    for (s, x) in sum.iter_mut().zip(b.iter_mut()) {
+                                        *s = std::mem::take(x);
+                                    }
+                                }
+                                None => sum.fill(0),
+                            }
                         }
-                        for b in blocks.iter_mut() {
+                        for b in blocks {
                             for (s, x) in sum.iter_mut().zip(b.iter_mut()) {
                                 *s = s.wrapping_add(*x);
                                 *x = 0;
