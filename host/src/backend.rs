@@ -820,20 +820,24 @@ impl ParallelCpuBackend {
                 .zip(self.grads[g].chunks_mut(BLOCK))
                 .enumerate()
             {
-                let blocks: Vec<&mut [i64]> = parts.iter_mut().filter_map(|it| it.next()).collect();
-                if run[b] {
-                    // its sum is written now, so Adam visits it from now on (where it is the
-                    // identity while its moments and sum are zero)
-                    self.live[g][b] = true;
-                    // Untouched: every worker block is zero, and so is the sum once cleared.
-                    let (clear, blocks) = if fresh[b] {
-                        (true, blocks)
-                    } else {
-                        (dirty[b], Vec::new())
-                    };
-                    dirty[b] = fresh[b];
-                    items.push((p, m, v, sum, clear, fresh[b], blocks));
+                if !run[b] {
+                    // Nothing to visit: step past this block of every worker (no gathering,
+                    // no allocation for the many blocks no step reaches).
+                    parts.iter_mut().for_each(|it| _ = it.next());
+                    continue;
                 }
+                // its sum is written now, so Adam visits it from now on (where it is the
+                // identity while its moments and sum are zero)
+                self.live[g][b] = true;
+                // Untouched: every worker block is zero, and so is the sum once cleared.
+                let (clear, blocks): (bool, Vec<&mut [i64]>) = if fresh[b] {
+                    (true, parts.iter_mut().filter_map(|it| it.next()).collect())
+                } else {
+                    parts.iter_mut().for_each(|it| _ = it.next());
+                    (dirty[b], Vec::new())
+                };
+                dirty[b] = fresh[b];
+                items.push((p, m, v, sum, clear, fresh[b], blocks));
             }
             finite &= self.pool.install(|| {
                 items
