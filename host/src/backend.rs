@@ -820,22 +820,22 @@ impl ParallelCpuBackend {
                 .zip(self.grads[g].chunks_mut(BLOCK))
                 .enumerate()
             {
-                if !run[b] {
-                    // Nothing to visit: step past this block of every worker (no gathering,
-                    // no allocation for the many blocks no step reaches).
+                // Only a block some worker touched has worker slices to add (every other
+                // worker block is zero): the rest are stepped past, not gathered.
+                let blocks: Vec<&mut [i64]> = if fresh[b] {
+                    parts.iter_mut().filter_map(|it| it.next()).collect()
+                } else {
                     parts.iter_mut().for_each(|it| _ = it.next());
+                    Vec::new()
+                };
+                if !run[b] {
                     continue;
                 }
                 // its sum is written now, so Adam visits it from now on (where it is the
                 // identity while its moments and sum are zero)
                 self.live[g][b] = true;
-                // Untouched: every worker block is zero, and so is the sum once cleared.
-                let (clear, blocks): (bool, Vec<&mut [i64]>) = if fresh[b] {
-                    (true, parts.iter_mut().filter_map(|it| it.next()).collect())
-                } else {
-                    parts.iter_mut().for_each(|it| _ = it.next());
-                    (dirty[b], Vec::new())
-                };
+                // Untouched: the sum is zero once cleared.
+                let clear = fresh[b] || dirty[b];
                 dirty[b] = fresh[b];
                 items.push((p, m, v, sum, clear, fresh[b], blocks));
             }
