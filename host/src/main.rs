@@ -25,7 +25,7 @@ enum Command {
     /// Synthesise a small room, map it with the demo preset (`small` with 20 online iterations and no early termination), evaluate and print a table.
     Demo(DemoArgs),
     /// List the Vulkan devices with their limits and the features the backend needs.
-    Devices,
+    Devices(DevicesArgs),
     /// Throughput of each backend present: forward and forward+backward samples/s, ms per
     /// training step at the small and the paper configuration, memory used.
     Bench(BenchArgs),
@@ -417,7 +417,7 @@ fn run() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Map(args) => map(args),
         Command::Demo(args) => demo(args),
-        Command::Devices => devices(),
+        Command::Devices(a) => devices(&a),
         Command::Bench(args) => bench(args),
         Command::Mesh(args) => mesh(args),
         Command::TrainDemo(args) => train_demo(args),
@@ -516,9 +516,46 @@ fn demo(args: DemoArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+#[derive(Args)]
+struct DevicesArgs {
+    /// Also build every shader entry point's compute pipeline on the selected device and
+    /// report each one (a driver that rejects a shader is named entry point by entry point).
+    #[arg(long)]
+    pipelines: bool,
+    /// With --pipelines: build this SPIR-V file's entry points instead of the built-in module
+    /// (narrowing down a driver's failure).
+    #[arg(long, requires = "pipelines")]
+    spirv: Option<std::path::PathBuf>,
+    /// With --pipelines: build with the driver's optimisations disabled.
+    #[arg(long, requires = "pipelines")]
+    no_optimization: bool,
+}
+
 /// `himap devices`.
-fn devices() -> anyhow::Result<()> {
+fn devices(a: &DevicesArgs) -> anyhow::Result<()> {
     print!("{}", himap_vulkan::describe_devices());
+    if a.pipelines {
+        let words = match &a.spirv {
+            Some(p) => {
+                let b = std::fs::read(p).with_context(|| format!("reading {}", p.display()))?;
+                anyhow::ensure!(
+                    b.len() % 4 == 0 && b.len() >= 20,
+                    "{} is not a SPIR-V module",
+                    p.display()
+                );
+                Some(
+                    b.chunks_exact(4)
+                        .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
+                        .collect::<Vec<u32>>(),
+                )
+            }
+            None => None,
+        };
+        print!(
+            "{}",
+            himap_vulkan::check_pipelines(words.as_deref(), a.no_optimization)
+        );
+    }
     let d = himap::select::decide(himap::select::BackendChoice::Auto);
     println!(
         "--backend auto would use: {}",

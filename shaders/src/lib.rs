@@ -38,8 +38,8 @@ use himap_core::field::render::MAX_SAMPLES;
 pub use himap_core::gpu_abi::WORKGROUP_SIZE;
 use himap_core::gpu_abi::{
     pixel_result_record, ray_result_record, words, AdamPush, KernelPush, LossCheckPush, RangePush,
-    SamplePush, TrainPush, PARAM_BINDINGS, RAY_FLOATS, SAMPLE_FLOATS, STATUS_REJECTED,
-    STATUS_STEPS, STATUS_WORDS,
+    SamplePush, TrainPush, PARAM_BINDINGS, PIXEL_AUX_FLOATS, RAY_FLOATS, SAMPLE_FLOATS,
+    STATUS_REJECTED, STATUS_STEPS, STATUS_WORDS,
 };
 use himap_core::train::adam;
 use himap_core::train::fixed;
@@ -974,29 +974,44 @@ fn read_pixel(pixels: &[u32], i: usize) -> PixelSample {
     }
 }
 
-/// Pass 2 of a mapping step: one pixel per invocation. Composites the pixel's ray from its
-/// sample records, takes `pixel::pixel_loss` (colour L1, DIM-SLAM warping loss through the
-/// rendered depth, depth prior), back-propagates through the compositing, stores the
-/// per-sample cotangents and adds the beta gradient.
+/// The window of a mapping step from its words and image slots.
+macro_rules! window_view {
+    ($window_words:ident, $images:ident => $poses:ident, $imgs:ident, $window:ident, $n:ident) => {
+        let ($n, width, height, slots) = words::window_frames($window_words);
+        let $poses = words::WordPoses {
+            words: $window_words,
+            n: $n,
+        };
+        let $imgs = WindowImages {
+            width,
+            height,
+            slots,
+            pixels: $images,
+        };
+        let $window = WindowView {
+            k: words::intrinsics_from_words($window_words, 0),
+            poses: &$poses,
+            images: &$imgs,
+        };
+    };
+}
+
+/// Pass 2a of a mapping step (only with the planarity prior): one pixel per invocation.
+/// Composites the pixel's ray from its sample records and stores the rendered depth in the
+/// pixel's [`PIXEL_AUX_FLOATS`] record, where [`pixel_loss_cs`] reads its triplet partners'
+/// depths (the same composite the partner's own invocation makes, so the same bits).
 ///
-/// - binding 0 `model`; binding 1 `beta`; binding 2 the beta gradient;
-/// - binding 3 `window` words; binding 4 `pixels`; binding 5 `images`;
-/// - binding 6 `rays` (from [`pixel_rays_cs`]); binding 7 `samples`;
-/// - binding 8 `results` ([`himap_core::gpu_abi::PIXEL_RESULT_FLOATS`] per pixel).
+/// Bindings as [`pixel_loss_cs`] (0 model, 1 beta, 6 rays, 7 samples, 9 `aux` used).
 #[spirv(compute(threads(64)))]
 #[allow(clippy::too_many_arguments)]
-pub fn pixel_train_cs(
+pub fn pixel_depth_cs(
     #[spirv(global_invocation_id)] id: UVec3,
     #[spirv(push_constant)] pc: &RangePush,
     #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_beta: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] g_beta: &mut [i64],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] window_words: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] pixels: &[u32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] images: &[u32],
     #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] pixel_rays: &[f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] pixel_samples: &mut [f32],
-    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] pixel_results: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] pixel_samples: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] aux: &mut [f32],
 ) {
     if id.x >= pc.n {
         return;
@@ -1004,31 +1019,58 @@ pub fn pixel_train_cs(
     let i = (pc.first + id.x) as usize;
     let layout = words::model_layout_from_words(model_words, 0);
     let beta = first_or_zero(p_beta);
-    let (n, width, height, slots) = words::window_frames(window_words);
+    let mut cache = RayCache::new();
+    let ray = read_ray(pixel_rays, i);
+    load_ray(&layout, beta, &ray, i, pixel_samples, &mut cache);
+    let b = i * PIXEL_AUX_FLOATS;
+    if b + PIXEL_AUX_FLOATS <= aux.len() {
+        aux[b] = cache.out.depth;
+    }
+}
+
+/// Pass 2b of a mapping step: one pixel per invocation. Composites the pixel's ray from its
+/// sample records and takes `pixel::pixel_loss` (colour L1, DIM-SLAM warping loss through
+/// the rendered depth, depth prior, planarity with the partners' depths from
+/// [`pixel_depth_cs`]); writes the pixel's result and the cotangents of its rendered colour
+/// and depth (aux floats 1..=4) for [`pixel_backward_cs`].
+///
+/// Three passes instead of one whole-pixel kernel: NVIDIA's driver (580, H200) failed to
+/// build the fused kernel (`VK_ERROR_UNKNOWN` from `vkCreateComputePipelines`) while it
+/// built the loss and the compositing backward as separate kernels.
+///
+/// - binding 0 `model`; binding 1 `beta`; binding 2 the beta gradient;
+/// - binding 3 `window` words; binding 4 `pixels`; binding 5 `images`;
+/// - binding 6 `rays` (from [`pixel_rays_cs`]); binding 7 `samples`;
+/// - binding 8 `results` ([`himap_core::gpu_abi::PIXEL_RESULT_FLOATS`] per pixel);
+/// - binding 9 `aux` ([`PIXEL_AUX_FLOATS`] per pixel).
+#[spirv(compute(threads(64)))]
+#[allow(clippy::too_many_arguments)]
+pub fn pixel_loss_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &RangePush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] window_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] pixels: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 5)] images: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] pixel_rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] pixel_samples: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 8)] pixel_results: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] aux: &mut [f32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let i = (pc.first + id.x) as usize;
+    let layout = words::model_layout_from_words(model_words, 0);
+    let beta = first_or_zero(p_beta);
+    window_view!(window_words, images => poses, imgs, window, n);
     let loss = words::mapping_loss_from_words(window_words, words::WINDOW_LOSS);
-    let poses = words::WordPoses {
-        words: window_words,
-        n,
-    };
-    let imgs = WindowImages {
-        width,
-        height,
-        slots,
-        pixels: images,
-    };
-    let window = WindowView {
-        k: words::intrinsics_from_words(window_words, 0),
-        poses: &poses,
-        images: &imgs,
-    };
     let px = read_pixel(pixels, i);
-    let mut d_sdf = [0.0f32; MAX_SAMPLES];
-    let mut d_rgb = [[0.0f32; 3]; MAX_SAMPLES];
     let mut res = PixelResult::default();
-    let mut live = 0;
+    let mut d = [0.0f32; 4];
     if (px.frame as usize) < n {
-        let mut cache = RayCache::new();
-        // the planarity partners' depths: their own rays composited from their records
+        // the planarity partners' depths, composited by their own `pixel_depth_cs`
         let mut triplet = pixel::PixelTriplet::NONE;
         if loss.planar.weight != 0.0 {
             if let Some((first, m)) = pixel::triplet_of(i, pc.total as usize) {
@@ -1042,30 +1084,80 @@ pub fn pixel_train_cs(
                     let mut k = 0;
                     while k < 3 {
                         if k != m {
-                            let j = first + k;
-                            let partner = read_ray(pixel_rays, j);
-                            load_ray(&layout, beta, &partner, j, pixel_samples, &mut cache);
-                            triplet.depth[k] = cache.out.depth;
+                            triplet.depth[k] = float_at(aux, (first + k) * PIXEL_AUX_FLOATS);
                         }
                         k += 1;
                     }
                 }
             }
         }
+        let mut cache = RayCache::new();
         let ray = read_ray(pixel_rays, i);
         load_ray(&layout, beta, &ray, i, pixel_samples, &mut cache);
         let (r, d_color, d_depth) =
             pixel::pixel_loss(&window, px, &ray, &cache.out, cache.n, &loss, &triplet);
         res = r;
+        d = [d_color[0], d_color[1], d_color[2], d_depth];
+    }
+    let b = i * PIXEL_AUX_FLOATS;
+    if b + PIXEL_AUX_FLOATS <= aux.len() {
+        aux[b + 1] = d[0];
+        aux[b + 2] = d[1];
+        aux[b + 3] = d[2];
+        aux[b + 4] = d[3];
+    }
+    write_record(pixel_results, i, &pixel_result_record(&res));
+}
+
+/// Pass 2c of a mapping step: one pixel per invocation. Composites the pixel's ray again,
+/// back-propagates the cotangents [`pixel_loss_cs`] left in the pixel's aux record through
+/// the compositing, stores the per-sample cotangents and adds the beta gradient. Bindings
+/// as [`pixel_loss_cs`] (0, 1, 2, 3, 4, 6, 7 and 9 used).
+#[spirv(compute(threads(64)))]
+#[allow(clippy::too_many_arguments)]
+pub fn pixel_backward_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &RangePush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] model_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] p_beta: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] g_beta: &mut [i64],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 3)] window_words: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 4)] pixels: &[u32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 6)] pixel_rays: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 7)] pixel_samples: &mut [f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 9)] aux: &[f32],
+) {
+    if id.x >= pc.n {
+        return;
+    }
+    let i = (pc.first + id.x) as usize;
+    let layout = words::model_layout_from_words(model_words, 0);
+    let beta = first_or_zero(p_beta);
+    let loss = words::mapping_loss_from_words(window_words, words::WINDOW_LOSS);
+    let (n, _, _, _) = words::window_frames(window_words);
+    let px = read_pixel(pixels, i);
+    let mut d_sdf = [0.0f32; MAX_SAMPLES];
+    let mut d_rgb = [[0.0f32; 3]; MAX_SAMPLES];
+    let mut live = 0;
+    if (px.frame as usize) < n {
+        let mut cache = RayCache::new();
+        let ray = read_ray(pixel_rays, i);
+        load_ray(&layout, beta, &ray, i, pixel_samples, &mut cache);
         live = cache.n;
         if cache.n > 0 {
+            let b = i * PIXEL_AUX_FLOATS;
+            let d_color = [
+                float_at(aux, b + 1),
+                float_at(aux, b + 2),
+                float_at(aux, b + 3),
+            ];
             let mut d_beta = 0.0f32;
             model::ray_composite_backward(
                 &layout,
                 beta,
                 &cache,
                 d_color,
-                d_depth,
+                float_at(aux, b + 4),
                 0.0,
                 loss.color_to_geometry,
                 &mut d_sdf,
@@ -1079,7 +1171,6 @@ pub fn pixel_train_cs(
         }
     }
     store_cotangents(&layout, i, live, &d_sdf, &d_rgb, pixel_samples);
-    write_record(pixel_results, i, &pixel_result_record(&res));
 }
 
 /// Signed distance at points: `out[i] = sdf_at(points[i])`. Bindings 0..=7 as

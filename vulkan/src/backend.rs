@@ -14,7 +14,8 @@
 //! 4. `adam_cs` per group.
 //!
 //! A mapping step runs `pixel_rays_cs` (camera ray of every sampled pixel) first and
-//! `pixel_train_cs` (colour, warping and depth-prior losses) as pass 2. A render is passes 1
+//! `pixel_depth_cs` (partner depths, with the planarity prior), `pixel_loss_cs` (colour, warping,
+//! depth-prior and planarity losses) and `pixel_backward_cs` as pass 2. A render is passes 1
 //! and `ray_render_cs`. Splitting per sample keeps every invocation short: real GPUs get
 //! more parallelism, and the software driver (llvmpipe) stays under its limit of 65535 loop
 //! iterations per invocation, past which it silently cuts loops short (that limit is what
@@ -48,9 +49,9 @@ use himap_core::field::model::{
 };
 use himap_core::field::render::MAX_SAMPLES;
 use himap_core::gpu_abi::{
-    pixel_result_from_record, ray_result_from_record, TrainPush, PIXEL_RESULT_FLOATS,
-    PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS, SAMPLE_FLOATS, STATUS_REJECTED,
-    STATUS_STEPS, STATUS_WORDS,
+    pixel_result_from_record, ray_result_from_record, TrainPush, PIXEL_AUX_FLOATS,
+    PIXEL_RESULT_FLOATS, PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS,
+    SAMPLE_FLOATS, STATUS_REJECTED, STATUS_STEPS, STATUS_WORDS,
 };
 use himap_core::train::adam::{AdamConfig, AdamStep};
 use himap_core::train::backend::{
@@ -257,6 +258,8 @@ struct MapFrame {
     window: Option<Buffer>,
     pixels: Option<Buffer>,
     results: Option<Buffer>,
+    /// Between the pixel passes: [`PIXEL_AUX_FLOATS`] per pixel (device memory).
+    aux: Option<Buffer>,
     status: Option<Buffer>,
     batch: u64,
     /// The backward structure the step used (its time goes to [`BackwardChoice::note`]).
@@ -828,6 +831,16 @@ impl VulkanBackend {
         self.check_binding("the pixel results of a batch", result_bytes)?;
         let m = &mut self.maps[f];
         ensure(&self.gpu, &mut m.results, result_bytes, "pixel results")?;
+        let aux_bytes = (n.max(1) * PIXEL_AUX_FLOATS * 4) as u64;
+        self.check_binding("the pixel records between passes", aux_bytes)?;
+        let m = &mut self.maps[f];
+        ensure_in(
+            &self.gpu,
+            &mut m.aux,
+            aux_bytes,
+            Memory::Device,
+            "pixel records between passes",
+        )?;
         ensure(
             &self.gpu,
             &mut m.status,
@@ -892,6 +905,7 @@ impl VulkanBackend {
         self.host_time("upload (host)", t0);
         let steps = self.adam_steps(&adam);
         let seed = batch.loss.seed;
+        let planar = batch.loss.planar.weight != 0.0;
         let timed = self.profiling;
         let backward = self.backward.next();
         self.maps[f].backward = Some(backward);
@@ -909,14 +923,24 @@ impl VulkanBackend {
             ..
         } = self;
         let m = &maps[f];
-        let (Some(input), Some(samples), Some(pixels), Some(window), Some(output), Some(copy)) = (
+        let (
+            Some(input),
+            Some(samples),
+            Some(pixels),
+            Some(window),
+            Some(output),
+            Some(aux),
+            Some(copy),
+        ) = (
             input.as_ref(),
             samples.as_ref(),
             m.pixels.as_ref(),
             m.window.as_ref(),
             m.results.as_ref(),
+            m.aux.as_ref(),
             m.status.as_ref(),
-        ) else {
+        )
+        else {
             return Err(VulkanError::Unsupported("buffer allocation"));
         };
         let images: &Buffer = images;
@@ -941,13 +965,26 @@ impl VulkanBackend {
                 r.barrier();
                 r.mark("pixel rays");
                 passes.sample_forward(r, seed, true)?;
-                let pipeline = &pipelines.pixel_train;
-                let set = passes.bind_composite(r, pipeline, &[window, pixels, images], output)?;
                 // the planarity triplets are cut by the whole batch's size
                 let push = |first, count| batch_push(first, count, n as u32);
+                let inputs = [window, pixels, images];
+                if planar {
+                    let pipeline = &pipelines.pixel_depth;
+                    let set = passes.bind_pixel(r, pipeline, &inputs, output, aux)?;
+                    dispatch_items(r, pipeline, &set, n, passes.max_groups, push);
+                    r.barrier();
+                    r.mark("composite depth (per pixel)");
+                }
+                let pipeline = &pipelines.pixel_loss;
+                let set = passes.bind_pixel(r, pipeline, &inputs, output, aux)?;
                 dispatch_items(r, pipeline, &set, n, passes.max_groups, push);
                 r.barrier();
                 r.mark("composite and pixel losses (per pixel)");
+                let pipeline = &pipelines.pixel_backward;
+                let set = passes.bind_pixel(r, pipeline, &inputs, output, aux)?;
+                dispatch_items(r, pipeline, &set, n, passes.max_groups, push);
+                r.barrier();
+                r.mark("compositing backward (per pixel)");
                 passes.sample_backward(r)?;
             }
             passes.checked_adam(

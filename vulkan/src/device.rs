@@ -233,6 +233,103 @@ pub(crate) fn choose(devices: &[DeviceInfo], wanted: Option<&str>) -> Result<usi
         })
 }
 
+/// Builds the compute pipeline of every shader entry point on the selected device, one at a
+/// time, and reports each one's result and build time (`himap devices --pipelines`): a driver
+/// that rejects one entry point is named precisely, where the backend stops at the first.
+///
+/// `spirv`: another SPIR-V module to build instead of the committed one (words), for
+/// narrowing a driver's failure down; `disable_optimization`: build with
+/// `VK_PIPELINE_CREATE_DISABLE_OPTIMIZATION_BIT` (does the driver's optimiser fail?).
+pub fn check_pipelines(spirv: Option<&[u32]>, disable_optimization: bool) -> String {
+    let mut s = String::new();
+    let device = match open() {
+        Ok(d) => d,
+        Err(e) => return format!("no usable Vulkan device: {e}\n"),
+    };
+    let _ = writeln!(s, "pipelines on {}:", device.info.name);
+    let committed = crate::shader_words();
+    let module = match raw::ShaderModule::new(&device, spirv.unwrap_or(&committed)) {
+        Ok(m) => m,
+        Err(e) => {
+            let _ = writeln!(s, "  shader module: FAILED: {e}");
+            return s;
+        }
+    };
+    let table = himap_core::gpu_abi::entry::ALL;
+    // Another module: every entry point it declares, with the table's layout where the name
+    // is in the table, else the widest layout (unused bindings are allowed).
+    let entries: Vec<himap_core::gpu_abi::EntryPoint> = match spirv {
+        None => table.to_vec(),
+        Some(words) => module_entry_names(words)
+            .into_iter()
+            .map(|name| {
+                table.iter().copied().find(|e| e.name == name).unwrap_or(
+                    himap_core::gpu_abi::EntryPoint {
+                        name: Box::leak(name.into_boxed_str()),
+                        bindings: table.iter().map(|e| e.bindings).max().unwrap_or(1),
+                        push_size: table.iter().map(|e| e.push_size).max().unwrap_or(4),
+                    },
+                )
+            })
+            .collect(),
+    };
+    let mut failed = 0;
+    for e in entries.iter() {
+        if e.name == himap_core::gpu_abi::entry::SAMPLE_BACKWARD_WG.name
+            && !device.info.shader_shared_int64_atomics
+        {
+            let _ = writeln!(
+                s,
+                "  {:<24} not built (no shaderSharedInt64Atomics)",
+                e.name
+            );
+            continue;
+        }
+        let t0 = std::time::Instant::now();
+        let flags = if disable_optimization {
+            vk::PipelineCreateFlags::DISABLE_OPTIMIZATION
+        } else {
+            vk::PipelineCreateFlags::empty()
+        };
+        let r = raw::Pipeline::with_flags(&device, &module, e, flags);
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        match r {
+            Ok(_) => {
+                let _ = writeln!(s, "  {:<24} ok ({ms:.0} ms)", e.name);
+            }
+            Err(err) => {
+                failed += 1;
+                let _ = writeln!(s, "  {:<24} FAILED ({ms:.0} ms): {err}", e.name);
+            }
+        }
+    }
+    let _ = writeln!(s, "{failed} of {} entry points failed", entries.len());
+    s
+}
+
+/// Names of a SPIR-V module's entry points (`OpEntryPoint`, opcode 15: execution model,
+/// function id, then the name as a nul-terminated literal).
+fn module_entry_names(words: &[u32]) -> Vec<String> {
+    let mut names = Vec::new();
+    let mut i = 5;
+    while i < words.len() {
+        let (count, op) = ((words[i] >> 16) as usize, words[i] & 0xffff);
+        if count == 0 || i + count > words.len() {
+            break;
+        }
+        if op == 15 && count > 3 {
+            let bytes: Vec<u8> = words[i + 3..i + count]
+                .iter()
+                .flat_map(|w| w.to_le_bytes())
+                .take_while(|&b| b != 0)
+                .collect();
+            names.push(String::from_utf8_lossy(&bytes).into_owned());
+        }
+        i += count;
+    }
+    names
+}
+
 /// Opens the selected device (see the module documentation).
 pub(crate) fn open() -> Result<Arc<raw::Device>, VulkanError> {
     let instance = Instance::new()?;
@@ -250,6 +347,17 @@ pub(crate) fn open() -> Result<Arc<raw::Device>, VulkanError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_diagnostic_reads_every_entry_point_name_of_the_module() {
+        let mut names = module_entry_names(&crate::shader_words());
+        names.sort();
+        let mut want: Vec<String> = crate::ENTRY_POINTS.iter().map(|s| s.to_string()).collect();
+        want.sort();
+        assert_eq!(names, want);
+        // a truncated module stops cleanly
+        assert!(module_entry_names(&crate::shader_words()[..7]).len() <= 1);
+    }
 
     fn dev(index: usize, name: &str, kind: DeviceKind, usable: bool) -> DeviceInfo {
         DeviceInfo {

@@ -58,6 +58,9 @@ pub enum VulkanError {
     Vk {
         call: &'static str,
         result: vk::Result,
+        /// What the call was for (a shader entry point, a buffer); empty when nothing more is
+        /// known.
+        what: String,
     },
 }
 
@@ -71,7 +74,11 @@ impl VulkanError {
             },
             vk::Result::ERROR_OUT_OF_HOST_MEMORY => Self::OutOfHostMemory,
             vk::Result::ERROR_DEVICE_LOST => Self::DeviceLost,
-            _ => Self::Vk { call, result },
+            _ => Self::Vk {
+                call,
+                result,
+                what: what.to_string(),
+            },
         }
     }
 }
@@ -177,11 +184,18 @@ impl fmt::Display for VulkanError {
                 "the Vulkan backend does not implement {what} yet; {USE_CPU}"
             ),
             Self::Core(e) => write!(f, "{e}"),
-            Self::Vk { call, result } => write!(
-                f,
-                "{call} failed: {result}; check the driver (`vulkaninfo --summary`), \
-                 {USE_CPU}"
-            ),
+            Self::Vk { call, result, what } => {
+                let what = if what.is_empty() {
+                    String::new()
+                } else {
+                    format!(" ({what})")
+                };
+                write!(
+                    f,
+                    "{call} failed{what}: {result}; check the driver (`vulkaninfo --summary`), \
+                     {USE_CPU}"
+                )
+            }
         }
     }
 }

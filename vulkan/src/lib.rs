@@ -22,7 +22,9 @@ mod passes;
 mod raw;
 
 pub use backend::{PassTime, VulkanBackend, VulkanOptions};
-pub use device::{describe_devices, list_devices, DeviceInfo, DeviceKind, DEVICE_ENV};
+pub use device::{
+    check_pipelines, describe_devices, list_devices, DeviceInfo, DeviceKind, DEVICE_ENV,
+};
 pub use error::VulkanError;
 pub use passes::BackwardPass;
 

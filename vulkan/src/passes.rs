@@ -25,7 +25,9 @@ pub(crate) struct Pipelines {
     pub(crate) sample_backward_wg: Option<Pipeline>,
     pub(crate) ray_render: Pipeline,
     pub(crate) pixel_rays: Pipeline,
-    pub(crate) pixel_train: Pipeline,
+    pub(crate) pixel_depth: Pipeline,
+    pub(crate) pixel_loss: Pipeline,
+    pub(crate) pixel_backward: Pipeline,
     pub(crate) adam: Pipeline,
     pub(crate) loss_check: Pipeline,
     pub(crate) adam_check: Pipeline,
@@ -55,7 +57,9 @@ impl Pipelines {
             },
             ray_render: p(&entry::RAY_RENDER)?,
             pixel_rays: p(&entry::PIXEL_RAYS)?,
-            pixel_train: p(&entry::PIXEL_TRAIN)?,
+            pixel_depth: p(&entry::PIXEL_DEPTH)?,
+            pixel_loss: p(&entry::PIXEL_LOSS)?,
+            pixel_backward: p(&entry::PIXEL_BACKWARD)?,
             adam: p(&entry::ADAM)?,
             loss_check: p(&entry::LOSS_CHECK)?,
             adam_check: p(&entry::ADAM_CHECK)?,
@@ -171,7 +175,7 @@ pub(crate) struct Passes<'a> {
 }
 
 impl<'a> Passes<'a> {
-    /// Binds a compositing pass (`ray_train_cs`, `pixel_train_cs`): the model words and beta's
+    /// Binds a compositing pass (`ray_train_cs`): the model words and beta's
     /// parameter and gradient, then `inputs` (the window's, for a mapping step), then the rays,
     /// the samples and `output`.
     pub(crate) fn bind_composite(
@@ -185,6 +189,24 @@ impl<'a> Passes<'a> {
         let mut b = vec![self.model_words, &beta.params, &beta.grad];
         b.extend_from_slice(inputs);
         b.extend_from_slice(&[self.rays, self.samples, output]);
+        r.bind(pipeline, &b)
+    }
+
+    /// Binds a mapping step's pixel pass (`pixel_depth_cs`, `pixel_loss_cs`,
+    /// `pixel_backward_cs`): [`Passes::bind_composite`]'s bindings, then the per-pixel records
+    /// between the passes.
+    pub(crate) fn bind_pixel(
+        &self,
+        r: &mut Recorder<'a>,
+        pipeline: &Pipeline,
+        inputs: &[&'a Buffer],
+        output: &'a Buffer,
+        aux: &'a Buffer,
+    ) -> Result<Set<'a>, VulkanError> {
+        let beta = self.groups[Group::Beta].lo();
+        let mut b = vec![self.model_words, &beta.params, &beta.grad];
+        b.extend_from_slice(inputs);
+        b.extend_from_slice(&[self.rays, self.samples, output, aux]);
         r.bind(pipeline, &b)
     }
 

@@ -342,17 +342,22 @@ pub fn loop_canary(n: u32, seed: u32) -> [u32; 2] {
 /// it fits, the appearance decoder when both fit.
 pub const WORKGROUP_MLP_SLOTS: usize = 2048;
 
-/// Loop iterations one `pixel_train_cs` invocation may run per other frame of the window
+/// Floats of a mapping step's per-pixel record between its pixel passes: the rendered depth
+/// (`pixel_depth_cs`), then the cotangents of the rendered colour (3) and depth
+/// (`pixel_loss_cs` for `pixel_backward_cs`).
+pub const PIXEL_AUX_FLOATS: usize = 5;
+
+/// Loop iterations one `pixel_loss_cs` invocation may run per other frame of the window
 /// (an upper bound, counted over `loss/warp.rs` and `loss/mod.rs` for the full 11x11 patch:
 /// the warp of the patch ~860, the 11x11 and 7x7 SSIM with their backward ~2,400, the
 /// cotangent sums ~1,460; about 4,750, rounded up with a quarter's margin).
 pub const PIXEL_TRAIN_LOOPS_PER_VIEW: u32 = 6_000;
 
-/// Loop iterations of one `pixel_train_cs` invocation independent of the window (compositing
+/// Loop iterations of one `pixel_loss_cs` invocation independent of the window (compositing
 /// over the samples, the colour, depth-prior and planarity terms): an upper bound.
 pub const PIXEL_TRAIN_LOOPS_BASE: u32 = 4_000;
 
-/// An upper bound on the loop iterations of one `pixel_train_cs` invocation for a window of
+/// An upper bound on the loop iterations of one `pixel_loss_cs` invocation for a window of
 /// `frames` frames, which a device's loop budget must exceed.
 ///
 /// # Examples
@@ -419,11 +424,17 @@ pub mod entry {
     /// The camera ray of every sampled pixel of a mapping step: window words, pixels, image
     /// slots, rays.
     pub const PIXEL_RAYS: EntryPoint = EntryPoint::new("pixel_rays_cs", 4, size_of::<RangePush>());
-    /// Composite, mapping loss and compositing backward of a mapping step's pixels: model
-    /// words, beta, beta gradient, window words, pixels, image slots, rays, sample records,
-    /// results.
-    pub const PIXEL_TRAIN: EntryPoint =
-        EntryPoint::new("pixel_train_cs", 9, size_of::<RangePush>());
+    /// A mapping step's pixels, in three passes over the same bindings (model words, beta,
+    /// beta gradient, window words, pixels, image slots, rays, sample records, results,
+    /// [`PIXEL_AUX_FLOATS`] per pixel): each pixel's rendered depth (for the planarity
+    /// partners), ...
+    pub const PIXEL_DEPTH: EntryPoint =
+        EntryPoint::new("pixel_depth_cs", 10, size_of::<RangePush>());
+    /// ... the mapping losses and the cotangents of the rendered colour and depth, ...
+    pub const PIXEL_LOSS: EntryPoint = EntryPoint::new("pixel_loss_cs", 10, size_of::<RangePush>());
+    /// ... and the compositing backward (per-sample cotangents, beta gradient).
+    pub const PIXEL_BACKWARD: EntryPoint =
+        EntryPoint::new("pixel_backward_cs", 10, size_of::<RangePush>());
     /// Parameters, both moments, gradient, status words ([`STATUS_WORDS`]).
     pub const ADAM: EntryPoint = EntryPoint::new("adam_cs", 5, size_of::<AdamPush>());
     /// Counts non-finite losses: results, status word.
@@ -447,7 +458,7 @@ pub mod entry {
     );
 
     /// All of them.
-    pub const ALL: [EntryPoint; 18] = [
+    pub const ALL: [EntryPoint; 20] = [
         SAMPLE_BACKWARD_WG,
         PROBE,
         LOOP_CANARY,
@@ -459,7 +470,9 @@ pub mod entry {
         SAMPLE_BACKWARD,
         RAY_RENDER,
         PIXEL_RAYS,
-        PIXEL_TRAIN,
+        PIXEL_DEPTH,
+        PIXEL_LOSS,
+        PIXEL_BACKWARD,
         ADAM,
         LOSS_CHECK,
         ADAM_CHECK,

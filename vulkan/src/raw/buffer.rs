@@ -77,6 +77,7 @@ impl Buffer {
             return Err(VulkanError::Vk {
                 call: "selecting a memory type",
                 result: vk::Result::ERROR_FEATURE_NOT_PRESENT,
+                what: String::new(),
             });
         };
         let ai = vk::MemoryAllocateInfo::default()

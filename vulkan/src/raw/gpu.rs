@@ -527,12 +527,14 @@ impl<'a> Recorder<'a> {
             return Err(VulkanError::Vk {
                 call: "binding buffers (wrong count for the pipeline)",
                 result: vk::Result::ERROR_UNKNOWN,
+                what: String::new(),
             });
         }
         if self.sets >= MAX_SETS {
             return Err(VulkanError::Vk {
                 call: "allocating a descriptor set (too many in one submission)",
                 result: vk::Result::ERROR_OUT_OF_POOL_MEMORY,
+                what: String::new(),
             });
         }
         let d = &self.device.device;

@@ -55,6 +55,17 @@ impl Pipeline {
         module: &ShaderModule,
         entry: &himap_core::gpu_abi::EntryPoint,
     ) -> Result<Self, VulkanError> {
+        Self::with_flags(device, module, entry, vk::PipelineCreateFlags::empty())
+    }
+
+    /// [`Pipeline::new`] with creation flags (the driver diagnostic's
+    /// `DISABLE_OPTIMIZATION`).
+    pub fn with_flags(
+        device: &Arc<Device>,
+        module: &ShaderModule,
+        entry: &himap_core::gpu_abi::EntryPoint,
+        flags: vk::PipelineCreateFlags,
+    ) -> Result<Self, VulkanError> {
         let (bindings, push_size) = (entry.bindings, entry.push_size);
         let entry = entry.name;
         let d = &device.device;
@@ -96,6 +107,7 @@ impl Pipeline {
             .module(module.module)
             .name(&name);
         let pci = [vk::ComputePipelineCreateInfo::default()
+            .flags(flags)
             .stage(stage)
             .layout(layout)];
         // SAFETY: the module contains `entry` as a GLCompute entry point whose bindings and
