@@ -49,8 +49,8 @@ impl Intrinsics {
     /// Intrinsics after resizing the image to `width` x `height` (pixel centres kept at
     /// integers: c' = (c + 0.5) * s - 0.5).
     pub fn resized(&self, width: u32, height: u32) -> Self {
-        let sx = width as f32 / self.width as f32;
-        let sy = height as f32 / self.height as f32;
+        let sx = crate::math::div(width as f32, self.width as f32);
+        let sy = crate::math::div(height as f32, self.height as f32);
         Self {
             width,
             height,
@@ -76,7 +76,11 @@ impl Intrinsics {
     /// Camera-space direction (z = 1) through pixel coordinates (u, v).
     #[inline]
     pub fn direction(&self, u: f32, v: f32) -> [f32; 3] {
-        [(u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0]
+        [
+            crate::math::div(u - self.cx, self.fx),
+            crate::math::div(v - self.cy, self.fy),
+            1.0,
+        ]
     }
 
     /// Projects a camera-space point; returns (u, v, z). z <= 0 means behind the camera.
@@ -84,8 +88,8 @@ impl Intrinsics {
     pub fn project(&self, p: [f32; 3]) -> (f32, f32, f32) {
         let z = p[2];
         (
-            self.fx * p[0] / z + self.cx,
-            self.fy * p[1] / z + self.cy,
+            crate::math::div(self.fx * p[0], z) + self.cx,
+            crate::math::div(self.fy * p[1], z) + self.cy,
             z,
         )
     }

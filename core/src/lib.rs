@@ -88,7 +88,7 @@ impl Aabb {
         let mut out = [0.0f32; 3];
         let mut a = 0;
         while a < 3 {
-            let x = (p[a] - self.min[a]) / (self.max[a] - self.min[a]) * 2.0 - 1.0;
+            let x = math::div(p[a] - self.min[a], self.max[a] - self.min[a]) * 2.0 - 1.0;
             out[a] = math::clamp(x, -1.0, 1.0);
             a += 1;
         }

@@ -104,6 +104,110 @@ pub fn max(a: f32, b: f32) -> f32 {
     }
 }
 
+/// `a / b` in kernels: IEEE division rounded to nearest even, the same bits on every device.
+/// On the CPU it is the processor's division (correctly rounded); in shader code
+/// (`target_arch = "spirv"`) it is [`div_rn`], because Vulkan allows `OpFDiv` an error of
+/// 2.5 ULP and NVIDIA's driver uses it (an H200 gave 1-ULP differences in every conformance
+/// case that divides). `himap-shader-build` rejects any `OpFDiv` left in the module, so
+/// kernels must divide through this function.
+#[inline(always)]
+pub fn div(a: f32, b: f32) -> f32 {
+    #[cfg(target_arch = "spirv")]
+    {
+        div_rn(a, b)
+    }
+    #[cfg(not(target_arch = "spirv"))]
+    {
+        a / b
+    }
+}
+
+/// Correctly rounded `a / b` (round to nearest even, subnormals exact) from integer
+/// operations only: the 24-bit significands are divided as `u64` (`ma * 2^32 / mb`, a quotient
+/// of 32 or 33 bits and a remainder for the sticky bit), then rounded once. Special values
+/// follow x86's SSE division, which the CPU reference runs on: a NaN `a` comes back quieted,
+/// else a NaN `b` quieted; `0 / 0` and `inf / inf` give the default NaN `0xffc0_0000`;
+/// `x / 0` gives a signed infinity, `x / inf` a signed zero. Tested bit for bit against the
+/// processor's division (specials, subnormals, overflow, random bit patterns).
+///
+/// Not inlined (SPIR-V `DontInline`, which spirv-opt respects): about 365 divisions in the
+/// kernels inlined would double the module (1.5 -> 2.9 MB) and the largest kernel's code.
+#[inline(never)]
+pub fn div_rn(a: f32, b: f32) -> f32 {
+    const INF: u32 = 0x7f80_0000;
+    const QUIET: u32 = 0x0040_0000;
+    const DEFAULT_NAN: u32 = 0xffc0_0000;
+    let (ua, ub) = (a.to_bits(), b.to_bits());
+    let sign = (ua ^ ub) & 0x8000_0000;
+    let (xa, xb) = (ua & 0x7fff_ffff, ub & 0x7fff_ffff);
+    if xa > INF {
+        return f32::from_bits(ua | QUIET);
+    }
+    if xb > INF {
+        return f32::from_bits(ub | QUIET);
+    }
+    if xa == INF {
+        return f32::from_bits(if xb == INF { DEFAULT_NAN } else { sign | INF });
+    }
+    if xb == INF {
+        return f32::from_bits(sign);
+    }
+    if xb == 0 {
+        return f32::from_bits(if xa == 0 { DEFAULT_NAN } else { sign | INF });
+    }
+    if xa == 0 {
+        return f32::from_bits(sign);
+    }
+    // significands with the leading bit at 23 (subnormals normalised), unbiased-by-127 exponents
+    let (mut ea, mut ma) = ((xa >> 23) as i32, xa & 0x007f_ffff);
+    if ea == 0 {
+        ea = 1;
+        while ma & 0x0080_0000 == 0 {
+            ma <<= 1;
+            ea -= 1;
+        }
+    } else {
+        ma |= 0x0080_0000;
+    }
+    let (mut eb, mut mb) = ((xb >> 23) as i32, xb & 0x007f_ffff);
+    if eb == 0 {
+        eb = 1;
+        while mb & 0x0080_0000 == 0 {
+            mb <<= 1;
+            eb -= 1;
+        }
+    } else {
+        mb |= 0x0080_0000;
+    }
+    // a / b = (ma / mb) 2^(ea - eb) with ma / mb in (1/2, 2): q = floor(ma 2^32 / mb) lies in
+    // (2^31, 2^33)
+    let num = (ma as u64) << 32;
+    let den = mb as u64;
+    let q = num / den;
+    let sticky = num - q * den != 0;
+    let (mut e, mut shift) = if q >= 1u64 << 32 {
+        (ea - eb + 127, 9u32)
+    } else {
+        (ea - eb + 126, 8u32)
+    };
+    if e >= 255 {
+        return f32::from_bits(sign | INF);
+    }
+    if e < 1 {
+        // subnormal result: fewer significand bits (past 40 everything rounds to zero)
+        let extra = (1 - e) as u32;
+        shift = if extra > 32 { 40 } else { shift + extra };
+        e = 1;
+    }
+    let mant = q >> shift;
+    let rest = q & ((1u64 << shift) - 1);
+    let half = 1u64 << (shift - 1);
+    let up = rest > half || (rest == half && (sticky || mant & 1 == 1));
+    // the leading bit of `mant` (or the carry of rounding) adds 1 to the exponent field
+    let bits = (((e - 1) as u32) << 23) + mant as u32 + up as u32;
+    f32::from_bits(sign | if bits >= INF { INF } else { bits })
+}
+
 /// `x^n` by repeated squaring (binary exponentiation, least significant bit first).
 /// `pow_int(x, 0)` is `1.0` for every `x`. The multiplication order is fixed, so the result is
 /// reproducible bit for bit; it is not always correctly rounded (each multiply rounds).
@@ -130,10 +234,10 @@ pub fn pow_int(x: f32, n: u32) -> f32 {
 #[inline]
 pub fn sigmoid(x: f32) -> f32 {
     if x >= 0.0 {
-        1.0 / (1.0 + exp(-x))
+        div(1.0, 1.0 + exp(-x))
     } else {
         let e = exp(x);
-        e / (1.0 + e)
+        div(e, 1.0 + e)
     }
 }
 
@@ -148,7 +252,7 @@ pub fn softplus(x: f32) -> f32 {
     let l = if u == 1.0 {
         e
     } else {
-        log(u) * (e / (u - 1.0))
+        log(u) * div(e, u - 1.0)
     };
     max(x, 0.0) + l
 }
@@ -423,7 +527,7 @@ pub fn exp(x: f32) -> f32 {
     // x is now in the primary range.
     let xx = x * x;
     let c = x - xx * (EXP_P1 + xx * EXP_P2);
-    let y = 1.0 + (x * c / (2.0 - c) - lo + hi);
+    let y = 1.0 + (div(x * c, 2.0 - c) - lo + hi);
     if k == 0 {
         y
     } else {
@@ -500,7 +604,7 @@ fn expm1(x: f32) -> f32 {
     let hxs = x * hfx;
     let r1 = 1.0 + hxs * (EXPM1_Q1 + hxs * EXPM1_Q2);
     let t = 3.0 - r1 * hfx;
-    let mut e = hxs * ((r1 - t) / (6.0 - x * t));
+    let mut e = hxs * div(r1 - t, 6.0 - x * t);
     if k == 0 {
         // c is 0
         return x - (x * e - hxs);
@@ -562,16 +666,16 @@ pub fn tanh(x: f32) -> f32 {
             1.0
         } else {
             let t = expm1(2.0 * x);
-            1.0 - 2.0 / (t + 2.0)
+            1.0 - div(2.0, t + 2.0)
         }
     } else if w > 0x3e82_c578 {
         // |x| > log(5/3)/2 ~= 0.2554
         let t = expm1(2.0 * x);
-        t / (t + 2.0)
+        div(t, t + 2.0)
     } else if w >= 0x0080_0000 {
         // |x| >= 2^-126
         let t = expm1(-2.0 * x);
-        -t / (t + 2.0)
+        div(-t, t + 2.0)
     } else {
         // |x| is subnormal
         x
@@ -630,7 +734,7 @@ pub fn log(x: f32) -> f32 {
     x = f32::from_bits(ix);
 
     let f = x - 1.0;
-    let s = f / (2.0 + f);
+    let s = div(f, 2.0 + f);
     let z = s * s;
     let w = z * z;
     let t1 = w * (LG2 + w * LG4);
@@ -1063,6 +1167,78 @@ pub fn cos(x: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `div_rn` against the processor's division, bit for bit, NaN payloads included.
+    #[test]
+    fn soft_division_equals_the_processors_division() {
+        let hw = |a: f32, b: f32| core::hint::black_box(a) / core::hint::black_box(b);
+        let check = |a: f32, b: f32| {
+            let (s, h) = (div_rn(a, b), hw(a, b));
+            assert_eq!(
+                s.to_bits(),
+                h.to_bits(),
+                "{a:e} ({:#x}) / {b:e} ({:#x}): soft {s:e} ({:#x}), hardware {h:e} ({:#x})",
+                a.to_bits(),
+                b.to_bits(),
+                s.to_bits(),
+                h.to_bits()
+            );
+        };
+        let specials = [
+            0.0f32,
+            -0.0,
+            1.0,
+            -1.0,
+            3.0,
+            0.1,
+            f32::MIN_POSITIVE,
+            -f32::MIN_POSITIVE,
+            f32::from_bits(1),
+            f32::from_bits(0x8000_0001),
+            f32::from_bits(0x007f_ffff),
+            f32::from_bits(0x0040_0000),
+            f32::MAX,
+            f32::MIN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            -f32::NAN,
+            f32::from_bits(0x7f80_0001), // signalling
+            f32::from_bits(0xffbf_ffff),
+            1.0 + f32::EPSILON,
+            1.0 - f32::EPSILON / 2.0,
+        ];
+        for &a in &specials {
+            for &b in &specials {
+                check(a, b);
+            }
+        }
+        // random bit patterns (all exponents), and ranges where results are subnormal,
+        // overflow, or ties could occur (small integers)
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for _ in 0..2_000_000 {
+            let r = next();
+            check(f32::from_bits(r as u32), f32::from_bits((r >> 32) as u32));
+        }
+        for _ in 0..500_000 {
+            let r = next();
+            let a = f32::from_bits(((r as u32) & 0x80ff_ffff) | 0x0080_0000); // tiny exponents
+            let b = f32::from_bits(((r >> 32) as u32 & 0x807f_ffff) | 0x4b00_0000); // ~2^23
+            check(a, b);
+            check(b, a);
+            let (i, j) = ((r & 0xffff) as f32, ((r >> 16) & 0xff) as f32 + 1.0);
+            check(i, j);
+            check(-i, j * 3.0);
+            let big = f32::from_bits(((r >> 40) as u32 & 0x00ff_ffff) | 0x7e80_0000);
+            check(big, f32::from_bits((r as u32 & 0x007f_ffff) | 0x0010_0000));
+        }
+    }
 
     /// Bit equality with NaN == NaN (NaN payloads and signs are not part of the contract).
     fn same(a: f32, b: f32) -> bool {

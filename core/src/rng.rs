@@ -1,6 +1,9 @@
 //! Counter-based random numbers: a pure function of (seed, stream, index), so CPU threads and
 //! GPU invocations draw identical values without sharing state.
 
+/// `2^-24`, the step of the 24-bit uniform floats (a constant: no division in kernels).
+const INV_2_24: f32 = 1.0 / 16_777_216.0;
+
 /// PCG-style integer hash (the "PCG hash" of Jarzynski and Olano, 2020).
 #[inline(always)]
 pub fn hash_u32(x: u32) -> u32 {
@@ -18,7 +21,7 @@ pub fn hash3(seed: u32, a: u32, b: u32) -> u32 {
 /// Uniform in [0, 1), 24 random bits (every value exactly representable).
 #[inline(always)]
 pub fn uniform(seed: u32, a: u32, b: u32) -> f32 {
-    (hash3(seed, a, b) >> 8) as f32 * (1.0 / 16_777_216.0)
+    (hash3(seed, a, b) >> 8) as f32 * INV_2_24
 }
 
 /// A standard normal draw by Box-Muller (host-side initialisation; uses vendored math).
@@ -83,7 +86,7 @@ impl SplitMix {
 
     /// Uniform in [0, 1).
     pub fn unit(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 * (1.0 / 16_777_216.0)
+        (self.next_u64() >> 40) as f32 * INV_2_24
     }
 }
 

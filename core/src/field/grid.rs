@@ -163,7 +163,7 @@ pub struct GridLayout {
 
 /// `ceil(extent / cell) + 1` (at least 2), with the tolerance [`CEIL_REL_TOL`].
 fn vertices_per_axis(extent: f32, cell: f32) -> Result<u32, Error> {
-    let q = extent / cell;
+    let q = math::div(extent, cell);
     // Also rejects an infinite quotient (a huge box or a subnormal cell size).
     let fits = q < (MAX_AXIS_VERTICES - 2) as f32;
     if !fits {
@@ -384,7 +384,7 @@ fn normalize_with_mask(aabb: &Aabb, p: [f32; 3]) -> ([f32; 3], [bool; 3]) {
     let mut inside = [false, false, false];
     let mut a = 0;
     while a < 3 {
-        let x = (p[a] - aabb.min[a]) / (aabb.max[a] - aabb.min[a]) * 2.0 - 1.0;
+        let x = math::div(p[a] - aabb.min[a], aabb.max[a] - aabb.min[a]) * 2.0 - 1.0;
         inside[a] = x >= -1.0 && x <= 1.0;
         xn[a] = math::clamp(x, -1.0, 1.0);
         a += 1;
@@ -640,7 +640,7 @@ pub fn grid_backward<P: ParamRead + ?Sized, S: GradSink>(
         let mut a = 0;
         while a < 3 {
             let r = if lv.res[a] < 2 { 2 } else { lv.res[a] };
-            d_p[a] += d_u[a] * ((r - 1) as f32 / extent[a]);
+            d_p[a] += d_u[a] * math::div((r - 1) as f32, extent[a]);
             a += 1;
         }
         l += 1;

@@ -223,7 +223,7 @@ pub fn mlp_init(layout: &MlpLayout, params: &mut [f32], seed: u32) -> Result<(),
         } else {
             layout.param_count as usize
         };
-        let bound = 1.0 / math::sqrt(layout.fan_in(k as u32) as f32);
+        let bound = math::div(1.0, math::sqrt(layout.fan_in(k as u32) as f32));
         let mut i = start;
         while i < end && i < params.len() {
             let u = crate::rng::uniform(seed, 1, i as u32);

@@ -103,7 +103,7 @@ pub fn ray_aabb(o: [f32; 3], d: [f32; 3], aabb: &crate::Aabb) -> (f32, f32, bool
                 hit = false;
             }
         } else {
-            let inv = 1.0 / d[a];
+            let inv = math::div(1.0, d[a]);
             let ta = (aabb.min[a] - o[a]) * inv;
             let tb = (aabb.max[a] - o[a]) * inv;
             let (lo, hi) = if ta < tb { (ta, tb) } else { (tb, ta) };
@@ -164,7 +164,11 @@ pub fn stratified_sample(
     i: usize,
 ) -> f32 {
     let far = if far > near { far } else { near };
-    let step = if n > 0 { (far - near) / n as f32 } else { 0.0 };
+    let step = if n > 0 {
+        math::div(far - near, n as f32)
+    } else {
+        0.0
+    };
     let u = if jitter {
         crate::rng::uniform(seed, ray_id, i as u32)
     } else {
@@ -258,7 +262,7 @@ pub fn render_forward(
                 sum += b;
                 i += 1;
             }
-            let inv_z = 1.0 / (sum + DIRECT_EPS);
+            let inv_z = math::div(1.0, sum + DIRECT_EPS);
             i = 0;
             while i < n {
                 out.trans[i] = inv_z;

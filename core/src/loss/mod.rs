@@ -74,7 +74,7 @@ pub fn l1_color(pred: [f32; 3], target: [f32; 3]) -> (f32, [f32; 3]) {
 pub fn smooth_l1(x: f32, beta: f32) -> (f32, f32) {
     let ax = math::abs(x);
     if ax < beta {
-        (0.5 * x * x / beta, x / beta)
+        (math::div(0.5 * x * x, beta), math::div(x, beta))
     } else {
         let half = if beta > 0.0 { 0.5 * beta } else { 0.0 };
         let d = if x > 0.0 {
@@ -112,7 +112,7 @@ pub fn gaussian_window(size: usize, sigma: f32, out: &mut [f32; PATCH_PIXELS]) {
     let c = (size / 2) as f32;
     let mut g = [0.0f32; PATCH];
     if sigma > 0.0 && sigma < f32::INFINITY {
-        let inv = 1.0 / (2.0 * sigma * sigma);
+        let inv = math::div(1.0, 2.0 * sigma * sigma);
         let mut sum = 0.0f32;
         let mut k = 0;
         while k < size {
@@ -123,7 +123,7 @@ pub fn gaussian_window(size: usize, sigma: f32, out: &mut [f32; PATCH_PIXELS]) {
         }
         k = 0;
         while k < size {
-            g[k] /= sum;
+            g[k] = math::div(g[k], sum);
             k += 1;
         }
     } else {
@@ -349,11 +349,11 @@ pub(crate) fn ssim_channel(
     let b1 = ma * ma + mb * mb + SSIM_C1;
     let b2 = var_a + var_b + SSIM_C2;
     let den = b1 * b2;
-    let s = a1 * a2 / den;
-    let d_a1 = a2 / den;
-    let d_a2 = a1 / den;
-    let d_b1 = -s / b1;
-    let d_b2 = -s / b2;
+    let s = math::div(a1 * a2, den);
+    let d_a1 = math::div(a2, den);
+    let d_a2 = math::div(a1, den);
+    let d_b1 = math::div(-s, b1);
+    let d_b2 = math::div(-s, b2);
     (
         s,
         2.0 * (mb * d_a1 + ma * d_b1),

@@ -30,6 +30,9 @@
 use super::smooth_l1;
 use crate::math;
 
+/// `1 / 3`, rounded once by the compiler (a constant, so no division in kernels).
+pub const THIRD: f32 = 1.0 / 3.0;
+
 /// Depths below this (m) make a triplet invalid: the pixel rendered (almost) nothing, or its
 /// view collapsed onto the camera (as `mapper.depth_prior_near`: nothing is that close to a
 /// camera in free space). The gradient grows as `d_b / d_a^2`, so near-zero depths would
@@ -64,14 +67,14 @@ impl PlanarConfig {
 /// mapper's region triplets stop at).
 #[inline(always)]
 pub fn mean_abs_diff(x: [f32; 3], y: [f32; 3]) -> f32 {
-    (math::abs(x[0] - y[0]) + math::abs(x[1] - y[1]) + math::abs(x[2] - y[2])) * (1.0 / 3.0)
+    (math::abs(x[0] - y[0]) + math::abs(x[1] - y[1]) + math::abs(x[2] - y[2])) * THIRD
 }
 
 /// The edge weight `1 / (1 + edge g)` of a triplet's colours.
 #[inline(always)]
 pub fn edge_weight(rgb: &[[f32; 3]; 3], edge: f32) -> f32 {
     let g = math::max(mean_abs_diff(rgb[0], rgb[1]), mean_abs_diff(rgb[1], rgb[2]));
-    1.0 / (1.0 + edge * g)
+    math::div(1.0, 1.0 + edge * g)
 }
 
 /// The prior of one triplet with equal spacings (depths and colours of pixels `b - s`, `b`,
@@ -98,10 +101,10 @@ pub fn planarity_spaced(
     }
     let (sa, sc) = (spacing[0] as f32, spacing[1] as f32);
     let sum = sa + sc;
-    let ka = (sc + sc) / sum;
-    let kc = (sa + sa) / sum;
-    let inv_a = 1.0 / da;
-    let inv_c = 1.0 / dc;
+    let ka = math::div(sc + sc, sum);
+    let kc = math::div(sa + sa, sum);
+    let inv_a = math::div(1.0, da);
+    let inv_c = math::div(1.0, dc);
     let ra = ka * (db * inv_a);
     let rc = kc * (db * inv_c);
     let r = (ra - 1.0) + (rc - 1.0);

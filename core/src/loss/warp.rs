@@ -370,7 +370,7 @@ fn centre_valid(pu: f32, pv: f32, z: f32, w: u32, h: u32, margin: f32) -> bool {
 /// lanes; a discarded value never reaches the output.
 #[inline(always)]
 fn projection_derivative(k: &Intrinsics, x: [f32; 3], xd: [f32; 3]) -> (f32, f32) {
-    let iz = 1.0 / x[2];
+    let iz = crate::math::div(1.0, x[2]);
     let zr = xd[2] * iz;
     let dpu = k.fx * (xd[0] - x[0] * zr) * iz;
     let dpv = k.fy * (xd[1] - x[1] * zr) * iz;

@@ -116,9 +116,9 @@ impl AdamStep {
 pub fn adam_update(s: &AdamStep, param: &mut f32, m: &mut f32, v: &mut f32, grad: f32) {
     let m_new = s.beta1 * *m + (1.0 - s.beta1) * grad;
     let v_new = s.beta2 * *v + (1.0 - s.beta2) * grad * grad;
-    let denom = math::sqrt(v_new) / math::sqrt(s.bias_correction2) + s.eps;
-    let step_size = s.lr / s.bias_correction1;
-    *param -= step_size * m_new / denom;
+    let denom = math::div(math::sqrt(v_new), math::sqrt(s.bias_correction2)) + s.eps;
+    let step_size = math::div(s.lr, s.bias_correction1);
+    *param -= math::div(step_size * m_new, denom);
     *m = m_new;
     *v = v_new;
 }

@@ -408,7 +408,7 @@ pub fn pixel_loss<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         let (v, g) = planarity_spaced(depth, &rgb, &loss.planar, triplet_spacing(&triplet.pixels));
         let kp = loss.color_scale * loss.planar.weight;
         // each of the three items reports a third of the triplet's loss
-        result.color_loss += kp * v * (1.0 / 3.0);
+        result.color_loss += kp * v * crate::loss::planar::THIRD;
         d_depth += kp * pick(g, m);
     }
     (result, d_color, d_depth)
