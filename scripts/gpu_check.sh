@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
-# Issue #13's checks on real GPU hardware, in one run of about 10 minutes: what the machine
-# offers for Vulkan, the conformance tests on the GPU (bit for bit against the CPU core), the
-# paper configuration's training step with per-pass timings, the first 40 ICL frames mapped
-# with the paper preset on the GPU and on the CPU (the two maps' tensors must be identical),
-# and as much of the whole ICL sequence as fits in the time left (frames per second).
+# Issue #13's checks on real GPU hardware, in one run of about 4 minutes (an NVIDIA H200,
+# 2026-12-04): what the machine offers for Vulkan (every shader entry point built), the paper
+# configuration's training step with per-pass timings, the first 30 ICL frames mapped with
+# the paper preset and a short schedule on the GPU (per-pass profile of the mapping steps) and
+# on the CPU (the two maps' tensors must be identical), the conformance tests on the GPU (bit
+# for bit against the CPU core), and the whole ICL sequence (ms per iteration, frames/s).
 #
 # Build here (the GPU machine has no network), then carry the binaries:
 #   bash scripts/gpu_check.sh --prepare          # writes gpu_bin/ (ignored by git)
@@ -122,7 +123,7 @@ if ! "$bin" devices 2>/dev/null | grep -qi "discrete"; then
 fi
 step 90 "$bin" devices --pipelines
 step 120 "$bin" bench --backend all --config paper --profile --steps 5
-step 150 "$bin" map "$icl" --preset paper --backend vulkan --frames 0:30 --config scripts/configs/icl-livingroom1.toml --config scripts/gpu_check_short.toml --out "$work/icl30_gpu"
+step 150 "$bin" map "$icl" --preset paper --backend vulkan --frames 0:30 --config scripts/configs/icl-livingroom1.toml --config scripts/gpu_check_short.toml --profile --out "$work/icl30_gpu"
 step 150 "$bin" map "$icl" --preset paper --backend cpu --frames 0:30 --config scripts/configs/icl-livingroom1.toml --config scripts/gpu_check_short.toml --out "$work/icl30_cpu"
 if [ -f "$work/icl30_gpu/map.safetensors" ] && [ -f "$work/icl30_cpu/map.safetensors" ]; then
     g=$(tensors_hash "$work/icl30_gpu/map.safetensors")

@@ -91,6 +91,10 @@ struct MapArgs {
     /// result equals the uninterrupted run bit for bit.
     #[arg(long, value_name = "DIR")]
     resume: Option<PathBuf>,
+    /// Time the Vulkan backend's passes (timestamp queries) and print the mapping's per-pass
+    /// table after the last update; steps then run one at a time instead of queued.
+    #[arg(long)]
+    profile: bool,
     /// Print the effective configuration (TOML) and exit.
     #[arg(long)]
     print_config: bool,
@@ -443,6 +447,7 @@ fn map(args: MapArgs) -> anyhow::Result<()> {
         no_preflight,
         checkpoint_every,
         resume,
+        profile,
         rerun,
         rerun_save,
         rerun_mesh_every,
@@ -481,6 +486,7 @@ fn map(args: MapArgs) -> anyhow::Result<()> {
             save: rerun_save,
             mesh_every: rerun_mesh_every,
         },
+        profile,
     };
     let s = himap::mapper_cli::run_map(&opts)?;
     println!("{}", himap::mapper_cli::summary_table(&s));

@@ -112,6 +112,11 @@ pub trait MapBackend: Backend {
     fn import(&mut self, data: &ModelData) -> anyhow::Result<()>;
     /// CPU worker threads (0 for a GPU backend).
     fn threads(&self) -> usize;
+    /// The per-pass table of the passes timed so far over `steps` steps taking `seconds`
+    /// (`himap map --profile`); `None` for a backend without pass timings.
+    fn profile_table(&self, _steps: usize, _seconds: f64) -> Option<String> {
+        None
+    }
 }
 
 impl MapBackend for ParallelCpuBackend {
@@ -144,6 +149,18 @@ impl MapBackend for ParallelCpuBackend {
 }
 
 impl MapBackend for VulkanBackend {
+    fn profile_table(&self, steps: usize, seconds: f64) -> Option<String> {
+        let passes = self.profile();
+        // the per-update evaluation renders run passes outside the mapping time: the shares
+        // are of whichever is larger
+        let timed: f64 = passes.iter().map(|p| p.total_ms).sum();
+        Some(crate::bench::format_profile(
+            &passes,
+            (seconds * 1e3).max(timed),
+            steps,
+        ))
+    }
+
     fn query_sdf(&mut self, points: &[[f32; 3]], out: &mut [f32]) -> anyhow::Result<()> {
         Ok(self.sdf(points, out)?)
     }

@@ -186,6 +186,8 @@ fn map_command_on_vulkan_equals_cpu() {
     let run = |backend: &str| {
         let opts = himap::mapper_cli::MapOptions {
             backend: backend.into(),
+            // `--profile` on the GPU: steps timed one by one instead of queued, same bits
+            profile: backend == "vulkan",
             ..himap::mapper_cli::MapOptions::new(data.clone(), dir.join(backend), cfg.clone(), 2)
         };
         let s = himap::mapper_cli::run_map(&opts).unwrap();

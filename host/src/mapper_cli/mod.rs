@@ -83,6 +83,9 @@ pub struct MapOptions {
     pub resume: Option<PathBuf>,
     /// The live view (Rerun viewer or `.rrd` file; cargo feature `rerun`).
     pub live: LiveOptions,
+    /// Time the Vulkan backend's passes (timestamp queries) and print the mapping's per-pass
+    /// table after the last update (steps are then waited for one by one, not queued).
+    pub profile: bool,
 }
 
 impl MapOptions {
@@ -105,6 +108,7 @@ impl MapOptions {
             checkpoint_every: 0,
             resume: None,
             live: LiveOptions::default(),
+            profile: false,
         }
     }
 }
@@ -197,6 +201,12 @@ pub fn run_map(opts: &MapOptions) -> anyhow::Result<MapSummary> {
                     _ => Ok(b),
                 }
             });
+        let started = started.and_then(|mut b| {
+            if opts.profile && !b.enable_profiling()? {
+                eprintln!("profile: the device has no timestamps; only transfers are timed");
+            }
+            Ok(b)
+        });
         match started {
             Ok(backend) => return map_with(opts, ds.as_ref(), ctx, backend),
             // `auto` keeps going on the CPU when the device cannot take the model.

@@ -54,6 +54,19 @@ where
     let start = resumed.as_ref().map_or(0, |(r, _)| r.pushed as usize);
     let poses = push_frames(opts, ds, &run, start, &mut mapper, &mut rec, &progress)?;
     progress.pb.finish_and_clear();
+    if opts.profile {
+        match mapper
+            .backend()
+            .profile_table(mapper.iterations() as usize, rec.mapping_s)
+        {
+            Some(t) => eprint!(
+                "mapping, {} iterations (the passes of the per-update evaluation renders \
+                 included):\n{t}",
+                mapper.iterations()
+            ),
+            None => eprintln!("profile: only the Vulkan backend times its passes"),
+        }
+    }
     let steps = StepCounts {
         iterations: mapper.iterations(),
         rejected: mapper.rejected_steps(),
