@@ -974,28 +974,6 @@ fn read_pixel(pixels: &[u32], i: usize) -> PixelSample {
     }
 }
 
-/// The window of a mapping step from its words and image slots.
-macro_rules! window_view {
-    ($window_words:ident, $images:ident => $poses:ident, $imgs:ident, $window:ident, $n:ident) => {
-        let ($n, width, height, slots) = words::window_frames($window_words);
-        let $poses = words::WordPoses {
-            words: $window_words,
-            n: $n,
-        };
-        let $imgs = WindowImages {
-            width,
-            height,
-            slots,
-            pixels: $images,
-        };
-        let $window = WindowView {
-            k: words::intrinsics_from_words($window_words, 0),
-            poses: &$poses,
-            images: &$imgs,
-        };
-    };
-}
-
 /// Pass 2a of a mapping step (only with the planarity prior): one pixel per invocation.
 /// Composites the pixel's ray from its sample records and stores the rendered depth in the
 /// pixel's [`PIXEL_AUX_FLOATS`] record, where [`pixel_loss_cs`] reads its triplet partners'
@@ -1064,7 +1042,22 @@ pub fn pixel_loss_cs(
     let i = (pc.first + id.x) as usize;
     let layout = words::model_layout_from_words(model_words, 0);
     let beta = first_or_zero(p_beta);
-    window_view!(window_words, images => poses, imgs, window, n);
+    let (n, width, height, slots) = words::window_frames(window_words);
+    let poses = words::WordPoses {
+        words: window_words,
+        n,
+    };
+    let imgs = WindowImages {
+        width,
+        height,
+        slots,
+        pixels: images,
+    };
+    let window = WindowView {
+        k: words::intrinsics_from_words(window_words, 0),
+        poses: &poses,
+        images: &imgs,
+    };
     let loss = words::mapping_loss_from_words(window_words, words::WINDOW_LOSS);
     let px = read_pixel(pixels, i);
     let mut res = PixelResult::default();
