@@ -104,22 +104,16 @@ pub fn max(a: f32, b: f32) -> f32 {
     }
 }
 
-/// `a / b` in kernels: IEEE division rounded to nearest even, the same bits on every device.
-/// On the CPU it is the processor's division (correctly rounded); in shader code
-/// (`target_arch = "spirv"`) it is [`div_rn`], because Vulkan allows `OpFDiv` an error of
-/// 2.5 ULP and NVIDIA's driver uses it (an H200 gave 1-ULP differences in every conformance
-/// case that divides). `himap-shader-build` rejects any `OpFDiv` left in the module, so
-/// kernels must divide through this function.
+/// `a / b` in kernels: every float division of the core goes through here, so the GPU's
+/// division can be chosen in one place. Today it is `/` everywhere (`OpFDiv` in SPIR-V).
+/// Vulkan allows `OpFDiv` 2.5 ULP, and NVIDIA's driver uses it: on an H200 the conformance
+/// cases differed from the CPU by 1 ULP in a fraction of values. [`div_rn`] (correctly
+/// rounded from integer operations) gives the CPU's bits, but with it in the shaders the H200
+/// did not finish a training step within two minutes (2026-12-04; the cause is not known
+/// yet), so the shaders keep `OpFDiv` until that is understood (ARCHITECTURE.md).
 #[inline(always)]
 pub fn div(a: f32, b: f32) -> f32 {
-    #[cfg(target_arch = "spirv")]
-    {
-        div_rn(a, b)
-    }
-    #[cfg(not(target_arch = "spirv"))]
-    {
-        a / b
-    }
+    a / b
 }
 
 /// Correctly rounded `a / b` (round to nearest even, subnormals exact) from integer
@@ -130,8 +124,8 @@ pub fn div(a: f32, b: f32) -> f32 {
 /// `x / 0` gives a signed infinity, `x / inf` a signed zero. Tested bit for bit against the
 /// processor's division (specials, subnormals, overflow, random bit patterns).
 ///
-/// Not inlined (SPIR-V `DontInline`): about 365 divisions in the kernels, inlined, doubled
-/// the module (1.5 -> 2.9 MB) and the largest kernel's code.
+/// Not called by the shaders at present (see [`div`]). Not inlined (SPIR-V `DontInline`
+/// when it is): inlined at the ~330 divisions of the kernels it doubled the module.
 #[inline(never)]
 pub fn div_rn(a: f32, b: f32) -> f32 {
     const INF: u32 = 0x7f80_0000;

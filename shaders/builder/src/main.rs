@@ -12,8 +12,7 @@
 //!    builds the shader crate without rust-gpu's own spirv-opt run.
 //! 2. A post-pass with `rspirv` rejects instructions whose GPU result is not bit-identical to
 //!    the CPU's (GLSL.std.450 `Fma`, the approximate built-ins `Exp`, `Log`, `Sqrt`, `Pow`,
-//!    `Sin`, ... that rust-gpu substitutes for `libm` calls, `OpFRem`/`OpFMod`, and `OpFDiv`,
-//!    which Vulkan allows 2.5 ULP: kernels divide with `himap_core::math::div`), then
+//!    `Sin`, ... that rust-gpu substitutes for `libm` calls, and `OpFRem`/`OpFMod`), then
 //!    decorates the result of every float arithmetic instruction `NoContraction`, so neither
 //!    spirv-opt nor a driver may fuse `a * b + c` into an FMA (the CPU never does).
 //! 3. `spirv-opt -O` (the installed SPIRV-Tools), the same check again, NoContraction on any
@@ -416,8 +415,7 @@ fn glsl_name(n: u32) -> Option<(&'static str, bool)> {
 const FROM_SOURCE: &str = "GLSL.std.450 built-ins come from calls into the `libm` crate \
      (rust-gpu replaces e.g. `libm::expf` with `Exp`), from glam/f32 methods that go through \
      libm, from `mul_add` (`Fma`) or from `f32::min`/`max`/`clamp`/`signum`/`round`; \
-     OpFRem/OpFMod from `%` on floats; OpFDiv from `/` on floats (Vulkan allows it 2.5 ULP; \
-     use `himap_core::math::div`). Kernels must use `himap_core::math` (vendored \
+     OpFRem/OpFMod from `%` on floats. Kernels must use `himap_core::math` (vendored \
      plain-f32 math) instead; see DESIGN.md, \"Kernels that must compile for both CPU and \
      SPIR-V\".";
 const FROM_OPTIMIZER: &str = "They were not in rust-gpu's output, so spirv-opt created them \
@@ -455,7 +453,7 @@ fn check_forbidden(module: &Module, why: &str) -> Result<(), BoxError> {
                             }
                         }
                     }
-                    Op::FRem | Op::FMod | Op::FDiv => {
+                    Op::FRem | Op::FMod => {
                         found.insert(format!("Op{:?}", inst.class.opcode));
                     }
                     _ => {}
