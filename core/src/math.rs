@@ -152,27 +152,7 @@ pub fn div_rn(a: f32, b: f32) -> f32 {
     if xa == 0 {
         return f32::from_bits(sign);
     }
-    // significands with the leading bit at 23 (subnormals normalised), unbiased-by-127 exponents
-    let (mut ea, mut ma) = ((xa >> 23) as i32, xa & 0x007f_ffff);
-    if ea == 0 {
-        ea = 1;
-        while ma & 0x0080_0000 == 0 {
-            ma <<= 1;
-            ea -= 1;
-        }
-    } else {
-        ma |= 0x0080_0000;
-    }
-    let (mut eb, mut mb) = ((xb >> 23) as i32, xb & 0x007f_ffff);
-    if eb == 0 {
-        eb = 1;
-        while mb & 0x0080_0000 == 0 {
-            mb <<= 1;
-            eb -= 1;
-        }
-    } else {
-        mb |= 0x0080_0000;
-    }
+    let ((ea, ma), (eb, mb)) = (unpack_finite(xa), unpack_finite(xb));
     // a / b = (ma / mb) 2^(ea - eb) with ma / mb in (1/2, 2): q = floor(ma 2^32 / mb) lies in
     // (2^31, 2^33)
     let num = (ma as u64) << 32;
@@ -202,6 +182,23 @@ pub fn div_rn(a: f32, b: f32) -> f32 {
     // the leading bit of `mant` (or the carry of rounding) adds 1 to the exponent field
     let bits = (((e - 1) as u32) << 23) + mant as u32 + up as u32;
     f32::from_bits(sign | if bits >= INF { INF } else { bits })
+}
+
+/// The biased exponent and 24-bit significand of a finite nonzero `|x|`'s bits, with the
+/// leading bit at 23 (a subnormal is normalised: its exponent goes below 1).
+#[inline(always)]
+fn unpack_finite(bits: u32) -> (i32, u32) {
+    let (mut e, mut m) = ((bits >> 23) as i32, bits & 0x007f_ffff);
+    if e == 0 {
+        e = 1;
+        while m & 0x0080_0000 == 0 {
+            m <<= 1;
+            e -= 1;
+        }
+    } else {
+        m |= 0x0080_0000;
+    }
+    (e, m)
 }
 
 /// `x^n` by repeated squaring (binary exponentiation, least significant bit first).

@@ -967,24 +967,34 @@ impl VulkanBackend {
                 passes.sample_forward(r, seed, true)?;
                 // the planarity triplets are cut by the whole batch's size
                 let push = |first, count| batch_push(first, count, n as u32);
-                let inputs = [window, pixels, images];
-                if planar {
-                    let pipeline = &pipelines.pixel_depth;
-                    let set = passes.bind_pixel(r, pipeline, &inputs, output, aux)?;
+                let pixel_passes = [
+                    (
+                        planar,
+                        &pipelines.pixel_depth,
+                        "composite depth (per pixel)",
+                    ),
+                    (
+                        true,
+                        &pipelines.pixel_loss,
+                        "composite and pixel losses (per pixel)",
+                    ),
+                    (
+                        true,
+                        &pipelines.pixel_backward,
+                        "compositing backward (per pixel)",
+                    ),
+                ];
+                for (_, pipeline, mark) in pixel_passes.into_iter().filter(|p| p.0) {
+                    let set = passes.bind_composite(
+                        r,
+                        pipeline,
+                        &[window, pixels, images],
+                        &[output, aux],
+                    )?;
                     dispatch_items(r, pipeline, &set, n, passes.max_groups, push);
                     r.barrier();
-                    r.mark("composite depth (per pixel)");
+                    r.mark(mark);
                 }
-                let pipeline = &pipelines.pixel_loss;
-                let set = passes.bind_pixel(r, pipeline, &inputs, output, aux)?;
-                dispatch_items(r, pipeline, &set, n, passes.max_groups, push);
-                r.barrier();
-                r.mark("composite and pixel losses (per pixel)");
-                let pipeline = &pipelines.pixel_backward;
-                let set = passes.bind_pixel(r, pipeline, &inputs, output, aux)?;
-                dispatch_items(r, pipeline, &set, n, passes.max_groups, push);
-                r.barrier();
-                r.mark("compositing backward (per pixel)");
                 passes.sample_backward(r)?;
             }
             passes.checked_adam(
@@ -1072,7 +1082,7 @@ impl Backend for VulkanBackend {
             if n > 0 {
                 passes.sample_forward(r, loss.seed, true)?;
                 let pipeline = &pipelines.ray_train;
-                let set = passes.bind_composite(r, pipeline, &[], output)?;
+                let set = passes.bind_composite(r, pipeline, &[], &[output])?;
                 dispatch_items(r, pipeline, &set, n, passes.max_groups, train_push);
                 r.barrier();
                 r.mark("composite and loss (per ray)");

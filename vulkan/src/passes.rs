@@ -175,38 +175,22 @@ pub(crate) struct Passes<'a> {
 }
 
 impl<'a> Passes<'a> {
-    /// Binds a compositing pass (`ray_train_cs`): the model words and beta's
-    /// parameter and gradient, then `inputs` (the window's, for a mapping step), then the rays,
-    /// the samples and `output`.
+    /// Binds a compositing pass (`ray_train_cs`; a mapping step's `pixel_depth_cs`,
+    /// `pixel_loss_cs`, `pixel_backward_cs`): the model words and beta's parameter and
+    /// gradient, then `inputs` (the window's, for a mapping step), then the rays, the samples
+    /// and `outputs` (the results; for the pixel passes also their per-pixel records).
     pub(crate) fn bind_composite(
         &self,
         r: &mut Recorder<'a>,
         pipeline: &Pipeline,
         inputs: &[&'a Buffer],
-        output: &'a Buffer,
+        outputs: &[&'a Buffer],
     ) -> Result<Set<'a>, VulkanError> {
         let beta = self.groups[Group::Beta].lo();
         let mut b = vec![self.model_words, &beta.params, &beta.grad];
         b.extend_from_slice(inputs);
-        b.extend_from_slice(&[self.rays, self.samples, output]);
-        r.bind(pipeline, &b)
-    }
-
-    /// Binds a mapping step's pixel pass (`pixel_depth_cs`, `pixel_loss_cs`,
-    /// `pixel_backward_cs`): [`Passes::bind_composite`]'s bindings, then the per-pixel records
-    /// between the passes.
-    pub(crate) fn bind_pixel(
-        &self,
-        r: &mut Recorder<'a>,
-        pipeline: &Pipeline,
-        inputs: &[&'a Buffer],
-        output: &'a Buffer,
-        aux: &'a Buffer,
-    ) -> Result<Set<'a>, VulkanError> {
-        let beta = self.groups[Group::Beta].lo();
-        let mut b = vec![self.model_words, &beta.params, &beta.grad];
-        b.extend_from_slice(inputs);
-        b.extend_from_slice(&[self.rays, self.samples, output, aux]);
+        b.extend_from_slice(&[self.rays, self.samples]);
+        b.extend_from_slice(outputs);
         r.bind(pipeline, &b)
     }
 
