@@ -122,6 +122,8 @@ if ! "$bin" devices 2>/dev/null | grep -qi "discrete"; then
     done
 fi
 step 90 "$bin" devices --pipelines
+step 40 "$bin" devices --divide 1000000
+[ -x gpu_bin/test-conformance ] && HIMAP_REQUIRE_VULKAN=1 step 120 gpu_bin/test-conformance --test-threads 4
 step 120 "$bin" bench --backend all --config paper --profile --steps 5
 step 150 "$bin" map "$icl" --preset paper --backend vulkan --frames 0:30 --config scripts/configs/icl-livingroom1.toml --config scripts/gpu_check_short.toml --profile --out "$work/icl30_gpu"
 step 150 "$bin" map "$icl" --preset paper --backend cpu --frames 0:30 --config scripts/configs/icl-livingroom1.toml --config scripts/gpu_check_short.toml --out "$work/icl30_cpu"
@@ -133,13 +135,12 @@ if [ -f "$work/icl30_gpu/map.safetensors" ] && [ -f "$work/icl30_cpu/map.safeten
 fi
 summary "$work/icl30_gpu"
 summary "$work/icl30_cpu"
-[ -x gpu_bin/test-conformance ] && HIMAP_REQUIRE_VULKAN=1 step 150 gpu_bin/test-conformance --test-threads 4
+[ -x gpu_bin/test-vulkan ] && HIMAP_REQUIRE_VULKAN=1 step 120 gpu_bin/test-vulkan --test-threads 4
+[ -x gpu_bin/test-query ] && HIMAP_REQUIRE_VULKAN=1 step 60 gpu_bin/test-query --test-threads 4
 step 300 "$bin" map "$icl" --preset paper --config scripts/configs/icl-livingroom1.toml --backend vulkan --out "$work/icl_gpu"
 summary "$work/icl_gpu"
 step 60 "$bin" bench --backend vulkan --config step --profile --steps 5
 HIMAP_BENCH_GLOBAL_ATOMICS=1 step 60 "$bin" bench --backend vulkan --config paper --profile --steps 5
-[ -x gpu_bin/test-vulkan ] && HIMAP_REQUIRE_VULKAN=1 step 120 gpu_bin/test-vulkan --test-threads 4
-[ -x gpu_bin/test-query ] && HIMAP_REQUIRE_VULKAN=1 step 60 gpu_bin/test-query --test-threads 4
 # Keep the small outputs (the device tool brings back at most 8 files): the summaries.
 for s in icl30_gpu icl30_cpu icl_gpu; do
     [ -f "$work/$s/summary.json" ] && cp "$work/$s/summary.json" "$out/summary_$s.json"

@@ -104,30 +104,54 @@ pub fn max(a: f32, b: f32) -> f32 {
     }
 }
 
-/// `a / b` in kernels: every float division of the core goes through here, so the GPU's
-/// division can be chosen in one place. Today it is `/` everywhere (`OpFDiv` in SPIR-V).
-/// Vulkan allows `OpFDiv` 2.5 ULP, and NVIDIA's driver uses it: on an H200 the conformance
-/// cases differed from the CPU by 1 ULP in a fraction of values. [`div_rn`] (correctly
-/// rounded from integer operations) gives the CPU's bits, but with it in the shaders the H200
-/// did not finish a training step within two minutes (2026-12-04; the cause is not known
-/// yet), so the shaders keep `OpFDiv` until that is understood (ARCHITECTURE.md).
+/// `a / b` in kernels: IEEE division rounded to nearest even, the same bits on every device.
+/// On the CPU it is the processor's division (correctly rounded); in shader code
+/// (`target_arch = "spirv"`) it is [`div_rn`], because Vulkan allows `OpFDiv` an error of
+/// 2.5 ULP and NVIDIA's driver uses it (an H200 gave 1-ULP differences in every conformance
+/// case that divides). Every float division of the core goes through here.
 #[inline(always)]
 pub fn div(a: f32, b: f32) -> f32 {
-    a / b
+    #[cfg(target_arch = "spirv")]
+    {
+        div_rn(a, b)
+    }
+    #[cfg(not(target_arch = "spirv"))]
+    {
+        a / b
+    }
 }
 
-/// Correctly rounded `a / b` (round to nearest even, subnormals exact) from integer
-/// operations only: the 24-bit significands are divided as `u64` (`ma * 2^32 / mb`, a quotient
-/// of 32 or 33 bits and a remainder for the sticky bit), then rounded once. Special values
-/// follow x86's SSE division, which the CPU reference runs on: a NaN `a` comes back quieted,
-/// else a NaN `b` quieted; `0 / 0` and `inf / inf` give the default NaN `0xffc0_0000`;
-/// `x / 0` gives a signed infinity, `x / inf` a signed zero. Tested bit for bit against the
-/// processor's division (specials, subnormals, overflow, random bit patterns).
+/// Correctly rounded `a / b` (round to nearest even, subnormals exact) from an approximate
+/// hardware quotient corrected with exact 32-bit integer arithmetic:
+/// 1. the significands `ma`, `mb` (24 bits) are divided as floats in `[1, 2)`, where any
+///    device's `OpFDiv` is within a few ULP (Vulkan allows 2.5) and nothing over- or
+///    underflows;
+/// 2. that estimate of `Q = floor(ma 2^s / mb)` (25 bits, one below the last significand bit)
+///    is corrected with the exact remainder `R = ma 2^s - Q mb`, computed in wrapping `u32`
+///    arithmetic: the true `R` is small (a few `mb`), so its low 32 bits are it;
+/// 3. `Q` and `R != 0` (the sticky bit) are rounded once, to a normal or subnormal result.
 ///
-/// Not called by the shaders at present (see [`div`]). Not inlined (SPIR-V `DontInline`
-/// when it is): inlined at the ~330 divisions of the kernels it doubled the module.
-#[inline(never)]
+/// Only 32-bit integer and float operations and no loops (an earlier form divided `u64`s
+/// and stalled an NVIDIA H200). The correction accepts a hardware quotient up to about 30
+/// ULP off (the remainder must fit an `i32`; tested with estimates pushed up to 16 ULP
+/// away). Special values follow x86's SSE
+/// division, which the CPU reference runs on: a NaN `a` comes back quieted, else a NaN `b`
+/// quieted; `0 / 0` and `inf / inf` give the default NaN `0xffc0_0000`; `x / 0` gives a
+/// signed infinity, `x / inf` a signed zero. Tested bit for bit against the processor's
+/// division (specials, subnormals, overflow, random bit patterns).
+///
+/// Inlined at every call (the module grows from 1.5 to 3.6 MB): NVIDIA's driver (580.159,
+/// H200) hangs at run time in any kernel that calls a function rust-gpu left as a SPIR-V
+/// function (`#[inline(never)]`), even the one-line `divide_cs`; inlined, the conformance
+/// suite matches the CPU bit for bit there.
+#[inline(always)]
 pub fn div_rn(a: f32, b: f32) -> f32 {
+    div_corrected(a, b, 0)
+}
+
+/// [`div_rn`] with the hardware estimate pushed `nudge` ULP away (tests of the correction).
+#[inline(always)]
+fn div_corrected(a: f32, b: f32, nudge: i32) -> f32 {
     const INF: u32 = 0x7f80_0000;
     const QUIET: u32 = 0x0040_0000;
     const DEFAULT_NAN: u32 = 0xffc0_0000;
@@ -153,34 +177,61 @@ pub fn div_rn(a: f32, b: f32) -> f32 {
         return f32::from_bits(sign);
     }
     let ((ea, ma), (eb, mb)) = (unpack_finite(xa), unpack_finite(xb));
-    // a / b = (ma / mb) 2^(ea - eb) with ma / mb in (1/2, 2): q = floor(ma 2^32 / mb) lies in
-    // (2^31, 2^33)
-    let num = (ma as u64) << 32;
-    let den = mb as u64;
-    // `checked_div` (den is never 0 here) has no panicking path, which rust-gpu would have to
-    // inline: the function stays one SPIR-V function (`DontInline`) instead of ~365 copies
-    let q = num.checked_div(den).unwrap_or(0);
-    let sticky = num - q * den != 0;
-    let (mut e, mut shift) = if q >= 1u64 << 32 {
-        (ea - eb + 127, 9u32)
+    // a / b = (ma / mb) 2^(ea - eb) with ma / mb in (1/2, 2). Q = floor(ma 2^s / mb) lies in
+    // [2^24, 2^25) with s = 24 when ma >= mb, s = 25 when ma < mb.
+    let s: i32 = if ma < mb { 25 } else { 24 };
+    let fa = f32::from_bits(0x3f80_0000 | (ma & 0x007f_ffff));
+    let fb = f32::from_bits(0x3f80_0000 | (mb & 0x007f_ffff));
+    let est = ((fa / fb).to_bits() as i32).wrapping_add(nudge) as u32;
+    // est = mq 2^(eq - 150), so est 2^s = mq 2^(s + eq - 150), about 2^24..2^25
+    let mq = (est & 0x007f_ffff) | 0x0080_0000;
+    let sh = s + ((est >> 23) & 0xff) as i32 - 150;
+    let mut q = if sh >= 0 {
+        mq << (sh & 7)
     } else {
-        (ea - eb + 126, 8u32)
+        mq >> ((-sh) & 7)
     };
+    let mbi = mb as i32;
+    let mut r = (ma << s as u32).wrapping_sub(q.wrapping_mul(mb)) as i32;
+    // Coarse step: k = trunc(r / mb) from floats (|r| < 2^31, so k is within 1 of the
+    // exact quotient), then at most two unit steps each way leave 0 <= r < mb. No loops.
+    let k = ((r as f32) / (mb as f32)) as i32;
+    q = q.wrapping_add(k as u32);
+    r = r.wrapping_sub(k.wrapping_mul(mbi));
+    if r < 0 {
+        q = q.wrapping_sub(1);
+        r += mbi;
+    }
+    if r < 0 {
+        q = q.wrapping_sub(1);
+        r += mbi;
+    }
+    if r >= mbi {
+        q = q.wrapping_add(1);
+        r -= mbi;
+    }
+    if r >= mbi {
+        q = q.wrapping_add(1);
+        r -= mbi;
+    }
+    let sticky = r != 0;
+    let mut e = ea - eb + 126 + (25 - s);
+    let mut shift = 1u32;
     if e >= 255 {
         return f32::from_bits(sign | INF);
     }
     if e < 1 {
-        // subnormal result: fewer significand bits (past 40 everything rounds to zero)
+        // subnormal result: fewer significand bits (past 26 everything rounds to zero)
         let extra = (1 - e) as u32;
-        shift = if extra > 32 { 40 } else { shift + extra };
+        shift = if extra > 25 { 26 } else { 1 + extra };
         e = 1;
     }
     let mant = q >> shift;
-    let rest = q & ((1u64 << shift) - 1);
-    let half = 1u64 << (shift - 1);
+    let rest = q & ((1u32 << shift) - 1);
+    let half = 1u32 << (shift - 1);
     let up = rest > half || (rest == half && (sticky || mant & 1 == 1));
     // the leading bit of `mant` (or the carry of rounding) adds 1 to the exponent field
-    let bits = (((e - 1) as u32) << 23) + mant as u32 + up as u32;
+    let bits = (((e - 1) as u32) << 23) + mant + up as u32;
     f32::from_bits(sign | if bits >= INF { INF } else { bits })
 }
 
@@ -190,8 +241,25 @@ pub fn div_rn(a: f32, b: f32) -> f32 {
 fn unpack_finite(bits: u32) -> (i32, u32) {
     let (mut e, mut m) = ((bits >> 23) as i32, bits & 0x007f_ffff);
     if e == 0 {
+        // normalise a nonzero subnormal (m < 2^23) by a binary search for its leading bit
         e = 1;
-        while m & 0x0080_0000 == 0 {
+        if m < 1 << 8 {
+            m <<= 16;
+            e -= 16;
+        }
+        if m < 1 << 16 {
+            m <<= 8;
+            e -= 8;
+        }
+        if m < 1 << 20 {
+            m <<= 4;
+            e -= 4;
+        }
+        if m < 1 << 22 {
+            m <<= 2;
+            e -= 2;
+        }
+        if m < 1 << 23 {
             m <<= 1;
             e -= 1;
         }
@@ -1230,6 +1298,55 @@ mod tests {
             check(-i, j * 3.0);
             let big = f32::from_bits(((r >> 40) as u32 & 0x00ff_ffff) | 0x7e80_0000);
             check(big, f32::from_bits((r as u32 & 0x007f_ffff) | 0x0010_0000));
+        }
+    }
+
+    /// `div_rn`'s correction step recovers the exact quotient from a hardware quotient that is
+    /// off by up to 16 ULP either way (Vulkan allows `OpFDiv` 2.5 ULP): on the CPU the
+    /// estimate is exact, so it is pushed away on purpose here.
+    #[test]
+    fn division_corrects_an_inexact_hardware_quotient() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let mut pairs = vec![
+            (1.0f32, 3.0f32),
+            (1.0, 1.0 + f32::EPSILON),
+            (1.0 + f32::EPSILON, 1.0),
+            (f32::from_bits(0x00ff_ffff), f32::from_bits(0x0080_0001)),
+            (f32::MIN_POSITIVE, 3.0),
+            (f32::from_bits(1), 0.75),
+            (f32::MAX, 0.5),
+            (2.0, 2.0),
+        ];
+        for _ in 0..20_000 {
+            let r = next();
+            pairs.push((f32::from_bits(r as u32), f32::from_bits((r >> 32) as u32)));
+            // significands close to each other (quotients near 1, where the exponent of the
+            // estimate can fall on either side)
+            let m = (r as u32) & 0x007f_ffff;
+            let d = ((r >> 32) as u32) & 0xf;
+            pairs.push((
+                f32::from_bits(0x3f80_0000 | m),
+                f32::from_bits(0x3f80_0000 | m.wrapping_add(d) & 0x007f_ffff),
+            ));
+        }
+        for &(a, b) in &pairs {
+            let h = core::hint::black_box(a) / core::hint::black_box(b);
+            for nudge in -16..=16 {
+                let s = div_corrected(a, b, nudge);
+                assert!(
+                    s.to_bits() == h.to_bits() || (s.is_nan() && h.is_nan()),
+                    "{a:e} / {b:e} with the estimate {nudge} ULP off: {s:e} ({:#x}), \
+                     hardware {h:e} ({:#x})",
+                    s.to_bits(),
+                    h.to_bits()
+                );
+            }
         }
     }
 

@@ -535,6 +535,10 @@ struct DevicesArgs {
     /// With --pipelines: build with the driver's optimisations disabled.
     #[arg(long, requires = "pipelines")]
     no_optimization: bool,
+    /// Divide this many pairs on the selected device, with the kernels' division and with
+    /// the device's own, and compare both with the CPU bit for bit.
+    #[arg(long, value_name = "PAIRS")]
+    divide: Option<u32>,
 }
 
 /// `himap devices`.
@@ -561,6 +565,9 @@ fn devices(a: &DevicesArgs) -> anyhow::Result<()> {
             "{}",
             himap_vulkan::check_pipelines(words.as_deref(), a.no_optimization)
         );
+    }
+    if let Some(n) = a.divide {
+        print!("{}", himap_vulkan::check_division(n));
     }
     let d = himap::select::decide(himap::select::BackendChoice::Auto);
     println!(

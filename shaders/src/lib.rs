@@ -133,6 +133,30 @@ pub fn loop_canary_cs(
     out[1] = r[1];
 }
 
+/// Division check (`himap devices --divide`): `out[i] = math::div(a[i], b[i])` (the kernels'
+/// division, correctly rounded) and `out[n + i] = a[i] / b[i]` (the device's `OpFDiv`), so
+/// the host sees both against the CPU's quotients.
+///
+/// - binding 0 `a`, binding 1 `b`: `n` floats each;
+/// - binding 2 `out`: `2 n` floats.
+///
+/// Push constants ([`KernelPush`]): `n` = number of pairs.
+#[spirv(compute(threads(64)))]
+pub fn divide_cs(
+    #[spirv(global_invocation_id)] id: UVec3,
+    #[spirv(push_constant)] pc: &KernelPush,
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 0)] a: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 1)] b: &[f32],
+    #[spirv(storage_buffer, descriptor_set = 0, binding = 2)] out: &mut [f32],
+) {
+    let (i, n) = (id.x as usize, pc.n as usize);
+    if i >= n || i >= a.len() || i >= b.len() || n + i >= out.len() {
+        return;
+    }
+    out[i] = himap_core::math::div(a[i], b[i]);
+    out[n + i] = a[i] / b[i];
+}
+
 /// Fixed-point atomics: `acc[i % buckets] += to_fixed(values[i])` through [`AtomicSink`]. The
 /// sums are order-independent, so they match `himap_core::FixedSink` bit for bit.
 ///

@@ -77,7 +77,14 @@ pub fn pixel_floats(r: &[PixelResult]) -> Vec<f32> {
 
 /// What must agree between two steps' statistics.
 fn stats_key(s: &StepStats) -> (bool, u32, u32, u32) {
-    (s.rejected, s.t, s.rays_hit, s.loss.to_bits())
+    // NaN payloads are not part of the contract (NVIDIA's arithmetic makes 0x7fffffff where
+    // x86 makes 0xffc00000 / 0x7fc00000): any NaN loss compares as one value
+    let loss = if s.loss.is_nan() {
+        f32::NAN.to_bits()
+    } else {
+        s.loss.to_bits()
+    };
+    (s.rejected, s.t, s.rays_hit, loss)
 }
 
 /// The small configuration's model (seeded) and a batch of rays, two of which start outside

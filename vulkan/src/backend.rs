@@ -437,7 +437,7 @@ impl VulkanBackend {
         let limit = BindingLimit::new(&info, &options);
         let part_lens = limit.split(lens)?;
         let mut gpu = Gpu::new(&device)?;
-        let module = ShaderModule::new(&device, &crate::shader_words())?;
+        let module = ShaderModule::new(&device, &crate::runtime_shader_words()?)?;
         let pipelines = Pipelines::new(&device, &module, !options.global_atomics_only)?;
         let workgroup_sums_available = pipelines.sample_backward_wg.is_some();
         let loop_budget = measure_loop_budget(&device, &mut gpu, &pipelines)?;

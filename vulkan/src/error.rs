@@ -50,6 +50,8 @@ pub enum VulkanError {
         needed: u32,
         budget: u32,
     },
+    /// The shader module named by `HIMAP_SPIRV` cannot be used.
+    Module(String),
     /// An operation the Vulkan backend does not implement yet.
     Unsupported(&'static str),
     /// Invalid input (shapes, sizes): the core's error.
@@ -179,6 +181,7 @@ impl fmt::Display for VulkanError {
                  (mapper.local_frames + mapper.window_keyframes + mapper.global_keyframes), a \
                  GPU, {USE_CPU}"
             ),
+            Self::Module(why) => write!(f, "{why} (unset HIMAP_SPIRV to run the built-in shaders)"),
             Self::Unsupported(what) => write!(
                 f,
                 "the Vulkan backend does not implement {what} yet; {USE_CPU}"

@@ -23,7 +23,8 @@ mod raw;
 
 pub use backend::{PassTime, VulkanBackend, VulkanOptions};
 pub use device::{
-    check_pipelines, describe_devices, list_devices, DeviceInfo, DeviceKind, DEVICE_ENV,
+    check_division, check_pipelines, describe_devices, list_devices, DeviceInfo, DeviceKind,
+    DEVICE_ENV,
 };
 pub use error::VulkanError;
 pub use passes::BackwardPass;
@@ -86,7 +87,28 @@ pub mod fault {
     }
 }
 
-/// The module as `u32` words.
+/// Environment variable naming another SPIR-V module for the backend to run instead of the
+/// built-in one (diagnosis of a driver: variants of the shaders without rebuilding `himap`).
+/// The file must declare every entry point with the built-in layouts.
+pub const SPIRV_ENV: &str = "HIMAP_SPIRV";
+
+/// The module the backend runs: the file named by [`SPIRV_ENV`] when it is set (an error
+/// when it cannot be read or is not SPIR-V), else the built-in [`shader_words`].
+pub fn runtime_shader_words() -> Result<Vec<u32>, VulkanError> {
+    let Ok(path) = std::env::var(SPIRV_ENV) else {
+        return Ok(shader_words());
+    };
+    let bad = |why: String| VulkanError::Module(format!("{SPIRV_ENV}={path}: {why}"));
+    let b = std::fs::read(&path).map_err(|e| bad(e.to_string()))?;
+    if b.len() % 4 != 0 || b.len() < 20 || b[..4] != [0x03, 0x02, 0x23, 0x07] {
+        return Err(bad("not a SPIR-V module".into()));
+    }
+    Ok(b.chunks_exact(4)
+        .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
+        .collect())
+}
+
+/// The built-in module as `u32` words.
 pub fn shader_words() -> Vec<u32> {
     let (words, rest) = SHADERS_SPV.as_chunks::<4>();
     debug_assert!(rest.is_empty());

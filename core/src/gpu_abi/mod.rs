@@ -385,6 +385,9 @@ pub mod entry {
     /// `arg`): output (2 words: state, steps).
     pub const LOOP_CANARY: EntryPoint =
         EntryPoint::new("loop_canary_cs", 1, size_of::<KernelPush>());
+    /// Division check (`himap devices --divide`): dividends, divisors, quotients (`2 n`
+    /// floats: [`crate::math::div`], then the device's own `OpFDiv`).
+    pub const DIVIDE: EntryPoint = EntryPoint::new("divide_cs", 3, size_of::<KernelPush>());
     /// Fixed-point atomic accumulation (`acc[i % buckets] += to_fixed(values[i])`): values,
     /// `i64` accumulators.
     pub const FIXED_ACCUMULATE: EntryPoint =
@@ -458,10 +461,11 @@ pub mod entry {
     );
 
     /// All of them.
-    pub const ALL: [EntryPoint; 20] = [
+    pub const ALL: [EntryPoint; 21] = [
         SAMPLE_BACKWARD_WG,
         PROBE,
         LOOP_CANARY,
+        DIVIDE,
         FIXED_ACCUMULATE,
         MLP_FORWARD,
         GRID_FORWARD,

@@ -15,7 +15,8 @@
 //!    `Sin`, ... that rust-gpu substitutes for `libm` calls, and `OpFRem`/`OpFMod`), then
 //!    decorates the result of every float arithmetic instruction `NoContraction`, so neither
 //!    spirv-opt nor a driver may fuse `a * b + c` into an FMA (the CPU never does).
-//! 3. `spirv-opt -O` (the installed SPIRV-Tools), the same check again, NoContraction on any
+//! 3. `spirv-opt -O` (the installed SPIRV-Tools), the same check again, no `OpFunctionCall`
+//!    left (NVIDIA's driver hangs running kernels that call functions), NoContraction on any
 //!    new float instruction, and `spirv-val --target-env vulkan1.2`.
 //!
 //! Why the order matters: SPIRV-Tools 2023.1 (Debian 12's `spirv-tools`) folds every
@@ -118,6 +119,7 @@ fn run(check: bool) -> Result<(), BoxError> {
     let mut module = rspirv::dr::load_bytes(std::fs::read(&opt_path)?)
         .map_err(|e| format!("parsing {} with rspirv: {e}", opt_path.display()))?;
     check_forbidden(&module, FROM_OPTIMIZER)?;
+    check_no_calls(&module)?;
     let added_after = decorate_no_contraction(&mut module);
     let entry_points = entry_point_names(&module);
     for name in &result.entry_points {
@@ -468,6 +470,43 @@ fn check_forbidden(module: &Module, why: &str) -> Result<(), BoxError> {
         "the shader module contains instructions that are not bit-identical between CPU and \
          GPU: {}.\n{why}",
         found.into_iter().collect::<Vec<_>>().join(", ")
+    )
+    .into())
+}
+
+/// Rejects a module whose kernels call functions (`OpFunctionCall`): NVIDIA's driver
+/// (580.159 on an H200) built such kernels but hung running them, even a one-line kernel
+/// calling a `#[inline(never)]` division (2026-12-04). Everything the kernels call must be
+/// inlined.
+fn check_no_calls(module: &Module) -> Result<(), BoxError> {
+    let names: std::collections::BTreeMap<u32, String> = module
+        .debug_names
+        .iter()
+        .filter(|i| i.class.opcode == Op::Name)
+        .filter_map(|i| match (i.operands.first(), i.operands.get(1)) {
+            (Some(Operand::IdRef(id)), Some(Operand::LiteralString(n))) => Some((*id, n.clone())),
+            _ => None,
+        })
+        .collect();
+    let mut called = BTreeSet::new();
+    for f in &module.functions {
+        for b in &f.blocks {
+            for inst in &b.instructions {
+                if inst.class.opcode == Op::FunctionCall {
+                    if let Some(Operand::IdRef(id)) = inst.operands.first() {
+                        called.insert(names.get(id).cloned().unwrap_or(format!("%{id}")));
+                    }
+                }
+            }
+        }
+    }
+    if called.is_empty() {
+        return Ok(());
+    }
+    Err(format!(
+        "the shader module calls functions ({}): NVIDIA's driver hangs running kernels that \
+         call functions; mark them #[inline(always)]",
+        called.into_iter().collect::<Vec<_>>().join(", ")
     )
     .into())
 }

@@ -33,6 +33,10 @@ pub(crate) struct PhysicalInfo {
     pub subgroup_size: u32,
     pub subgroup_arithmetic: bool,
     pub shader_subgroup_extended_types: bool,
+    /// 32-bit float controls the driver offers (Vulkan 1.2; all `false` before): subnormals
+    /// preserved / flushed on request, signed zeros, infinities and NaNs preserved, round to
+    /// nearest even on request. Reported by `himap devices` (bit-exactness diagnosis).
+    pub float_controls_32: [bool; 4],
 }
 
 impl PhysicalInfo {
@@ -122,6 +126,7 @@ impl Instance {
             let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
             let (mut shader_int64, mut atomics64, mut memory_model) = (false, false, false);
             let (mut shared64, mut extended_types) = (false, false);
+            let mut float_controls_32 = [false; 4];
             if props.api_version >= vk::API_VERSION_1_1 {
                 let mut p2 = vk::PhysicalDeviceProperties2::default()
                     .push_next(&mut maint3)
@@ -141,6 +146,17 @@ impl Instance {
                 memory_model = v12.vulkan_memory_model == vk::TRUE;
                 shared64 = v12.shader_shared_int64_atomics == vk::TRUE;
                 extended_types = v12.shader_subgroup_extended_types == vk::TRUE;
+                let mut fc = vk::PhysicalDeviceFloatControlsProperties::default();
+                let mut p2 = vk::PhysicalDeviceProperties2::default().push_next(&mut fc);
+                // SAFETY: the device supports Vulkan 1.2, whose core includes the float
+                // controls properties structure; both live across the call.
+                unsafe { self.instance.get_physical_device_properties2(pd, &mut p2) };
+                float_controls_32 = [
+                    fc.shader_denorm_preserve_float32 == vk::TRUE,
+                    fc.shader_denorm_flush_to_zero_float32 == vk::TRUE,
+                    fc.shader_signed_zero_inf_nan_preserve_float32 == vk::TRUE,
+                    fc.shader_rounding_mode_rte_float32 == vk::TRUE,
+                ];
             }
             // SAFETY: `pd` is a valid physical device of this instance.
             let families = unsafe {
@@ -193,6 +209,7 @@ impl Instance {
                     .supported_operations
                     .contains(vk::SubgroupFeatureFlags::ARITHMETIC),
                 shader_subgroup_extended_types: extended_types,
+                float_controls_32,
             });
         }
         Ok(out)
