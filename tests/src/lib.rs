@@ -12,7 +12,14 @@ use himap_vulkan::{VulkanBackend, VulkanError};
 /// machine has no usable Vulkan device. With `HIMAP_REQUIRE_VULKAN=1` a missing device is a
 /// test failure. Errors that are not about device availability always fail.
 pub fn vulkan_or_skip(data: &ModelData, adam: PerGroup<AdamConfig>) -> Option<VulkanBackend> {
-    match VulkanBackend::new(data.layout, data.param_slices(), adam) {
+    vulkan_result_or_skip(VulkanBackend::new(data.layout, data.param_slices(), adam))
+}
+
+/// `r`'s value, or `None` (with the reason printed) when its error says this machine has no
+/// usable Vulkan device; with `HIMAP_REQUIRE_VULKAN=1` that is a test failure, and any other
+/// error always is.
+pub fn vulkan_result_or_skip<T>(r: Result<T, VulkanError>) -> Option<T> {
+    match r {
         Ok(b) => Some(b),
         Err(
             e @ (VulkanError::NoLoader(_)
@@ -29,6 +36,6 @@ pub fn vulkan_or_skip(data: &ModelData, adam: PerGroup<AdamConfig>) -> Option<Vu
             eprintln!("skipping: no usable Vulkan device: {e}");
             None
         }
-        Err(e) => panic!("creating the Vulkan backend failed: {e}"),
+        Err(e) => panic!("the Vulkan device failed: {e}"),
     }
 }

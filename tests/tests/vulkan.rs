@@ -572,3 +572,32 @@ fn workgroup_summed_backward_equals_global_atomics_and_the_cpu() {
         eprintln!("{name}: workgroup sums {}", wg.workgroup_sums());
     }
 }
+
+/// The kernels' division (`math::div`, correctly rounded in SPIR-V) gives the CPU's bits on
+/// the device for every kind of operand: random bit patterns (subnormals, infinities, NaNs,
+/// overflowing and underflowing quotients) and the moderate values the kernels divide.
+#[test]
+fn the_kernels_division_equals_the_cpus() {
+    let (mut a, mut b) = himap_vulkan::division_pairs(20_000);
+    for (x, y) in [
+        (1.0f32, 3.0f32),
+        (0.0, 0.0),
+        (f32::INFINITY, f32::INFINITY),
+        (1.0, 0.0),
+        (-0.0, 5.0),
+        (f32::MIN_POSITIVE, 3.0),
+        (f32::from_bits(1), 0.75),
+        (f32::MAX, 0.5),
+        (f32::from_bits(0x00ff_ffff), f32::from_bits(0x0080_0001)),
+    ] {
+        a.push(x);
+        b.push(y);
+    }
+    let Some((q, _, _)) =
+        himap_tests::vulkan_result_or_skip(himap_vulkan::divide_on_device(&a, &b))
+    else {
+        return;
+    };
+    let want: Vec<f32> = a.iter().zip(&b).map(|(x, y)| x / y).collect();
+    assert_same_f32("quotients", &want, &q);
+}

@@ -247,130 +247,142 @@ pub(crate) fn choose(devices: &[DeviceInfo], wanted: Option<&str>) -> Result<usi
         })
 }
 
-/// Divides `n` pairs of floats on the selected device (`himap devices --divide`) with the
-/// kernels' division (`math::div`) and with the device's own `OpFDiv`, and reports each
-/// against the CPU's correctly rounded quotients: mismatches (NaN equals NaN), the largest
-/// difference in ULP, the first few mismatching pairs, and the device time of a dispatch.
-/// Half the pairs are random bit patterns (all exponents, subnormals, specials), half are
-/// moderate values (`1e-3..1e3`, random signs), as the kernels divide.
-pub fn check_division(n: u32) -> String {
-    let mut s = String::new();
-    let r = (|| -> Result<(), VulkanError> {
-        let device = open()?;
-        let _ = writeln!(s, "division on {} ({n} pairs):", device.info.name);
-        let module = raw::ShaderModule::new(&device, &crate::runtime_shader_words()?)?;
-        let pipeline = raw::Pipeline::new(&device, &module, &himap_core::gpu_abi::entry::DIVIDE)?;
-        let n = n.max(1) as usize;
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            state
-        };
-        let (mut a, mut b) = (Vec::with_capacity(n), Vec::with_capacity(n));
-        for i in 0..n {
-            let r = next();
-            if i % 2 == 0 {
-                a.push(f32::from_bits(r as u32));
-                b.push(f32::from_bits((r >> 32) as u32));
-            } else {
-                let u = |x: u64| (x & 0xff_ffff) as f32 / 16_777_216.0;
-                let v = |x: u64, sgn: u64| {
-                    let m = 1e-3f32 * 1e6f32.powf(u(x));
-                    if sgn & 1 == 1 {
-                        -m
-                    } else {
-                        m
-                    }
-                };
-                a.push(v(r, r >> 60));
-                b.push(v(r >> 24, r >> 61));
-            }
-        }
-        let bytes = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-        let mut ba = raw::Buffer::new(&device, 4 * n as u64, raw::Memory::Host, "dividends")?;
-        let mut bb = raw::Buffer::new(&device, 4 * n as u64, raw::Memory::Host, "divisors")?;
-        let out = raw::Buffer::new(&device, 8 * n as u64, raw::Memory::Host, "quotients")?;
-        ba.write_mapped(0, &bytes(&a));
-        bb.write_mapped(0, &bytes(&b));
-        let mut gpu = raw::Gpu::new(&device)?;
-        let push = crate::passes::push_bytes(himap_core::gpu_abi::KernelPush {
-            n: n as u32,
-            ..Default::default()
-        });
-        let groups = n.div_ceil(crate::WORKGROUP_SIZE as usize) as u32;
-        let mut times = Vec::new();
-        for _ in 0..3 {
-            let t0 = std::time::Instant::now();
-            gpu.submit(|r| {
-                let set = r.bind(&pipeline, &[&ba, &bb, &out])?;
-                r.dispatch(&pipeline, &set, &push[..pipeline.push_size()], groups);
-                Ok(())
-            })?;
-            times.push(t0.elapsed().as_secs_f64() * 1e3);
-        }
-        let mut raw_out = vec![0u8; 8 * n];
-        out.read_mapped(0, &mut raw_out);
-        let q: Vec<f32> = raw_out
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect();
-        let ulps = |x: f32, y: f32| -> u64 {
-            let key = |v: f32| {
-                let u = v.to_bits();
-                if u >> 31 == 1 {
-                    -((u & 0x7fff_ffff) as i64)
+/// What [`divide_on_device`] returns: the kernels' quotients, the device's `OpFDiv`
+/// quotients, and the times of three dispatches (dispatch + wait, ms).
+pub type Quotients = (Vec<f32>, Vec<f32>, [f64; 3]);
+
+/// Divides `a[i] / b[i]` on the selected device with the kernels' division
+/// (`math::div`, `divide_cs`) and with the device's own `OpFDiv`.
+pub fn divide_on_device(a: &[f32], b: &[f32]) -> Result<Quotients, VulkanError> {
+    let n = a.len().min(b.len()).max(1);
+    let device = open()?;
+    let module = raw::ShaderModule::new(&device, &crate::runtime_shader_words()?)?;
+    let pipeline = raw::Pipeline::new(&device, &module, &himap_core::gpu_abi::entry::DIVIDE)?;
+    let bytes = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    let mut ba = raw::Buffer::new(&device, 4 * n as u64, raw::Memory::Host, "dividends")?;
+    let mut bb = raw::Buffer::new(&device, 4 * n as u64, raw::Memory::Host, "divisors")?;
+    let out = raw::Buffer::new(&device, 8 * n as u64, raw::Memory::Host, "quotients")?;
+    ba.write_mapped(0, &bytes(&a[..n.min(a.len())]));
+    bb.write_mapped(0, &bytes(&b[..n.min(b.len())]));
+    let mut gpu = raw::Gpu::new(&device)?;
+    let push = crate::passes::push_bytes(himap_core::gpu_abi::KernelPush {
+        n: a.len().min(b.len()) as u32,
+        ..Default::default()
+    });
+    let groups = n.div_ceil(crate::WORKGROUP_SIZE as usize) as u32;
+    let mut times = [0.0; 3];
+    for t in times.iter_mut() {
+        let t0 = std::time::Instant::now();
+        gpu.submit(|r| {
+            let set = r.bind(&pipeline, &[&ba, &bb, &out])?;
+            r.dispatch(&pipeline, &set, &push[..pipeline.push_size()], groups);
+            Ok(())
+        })?;
+        *t = t0.elapsed().as_secs_f64() * 1e3;
+    }
+    let mut raw_out = vec![0u8; 8 * n];
+    out.read_mapped(0, &mut raw_out);
+    let q: Vec<f32> = raw_out
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    let m = a.len().min(b.len());
+    Ok((q[..m].to_vec(), q[n..n + m].to_vec(), times))
+}
+
+/// `n` pairs for [`check_division`]: half random bit patterns (all exponents, subnormals,
+/// specials), half moderate values (`1e-3..1e3`, random signs), as the kernels divide.
+pub fn division_pairs(n: usize) -> (Vec<f32>, Vec<f32>) {
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    let (mut a, mut b) = (Vec::with_capacity(n), Vec::with_capacity(n));
+    for i in 0..n {
+        let r = next();
+        if i % 2 == 0 {
+            a.push(f32::from_bits(r as u32));
+            b.push(f32::from_bits((r >> 32) as u32));
+        } else {
+            let v = |x: u64, sgn: u64| {
+                let m = 1e-3f32 * 1e6f32.powf((x & 0xff_ffff) as f32 / 16_777_216.0);
+                if sgn & 1 == 1 {
+                    -m
                 } else {
-                    u as i64
+                    m
                 }
             };
-            (key(x) - key(y)).unsigned_abs()
-        };
-        for (label, off) in [("math::div (kernels)", 0), ("OpFDiv (device)", n)] {
-            let (mut bad, mut worst, mut shown) = (0usize, 0u64, 0);
-            let mut lines = String::new();
-            for i in 0..n {
-                let (cpu, dev) = (a[i] / b[i], q[off + i]);
-                if cpu.to_bits() == dev.to_bits() || (cpu.is_nan() && dev.is_nan()) {
-                    continue;
-                }
-                bad += 1;
-                if !cpu.is_nan() && !dev.is_nan() {
-                    worst = worst.max(ulps(cpu, dev));
-                }
-                if shown < 6 {
-                    shown += 1;
-                    let _ = writeln!(
-                        lines,
-                        "      {:e} ({:#010x}) / {:e} ({:#010x}): CPU {:e} ({:#010x}), device {:e} ({:#010x})",
-                        a[i],
-                        a[i].to_bits(),
-                        b[i],
-                        b[i].to_bits(),
-                        cpu,
-                        cpu.to_bits(),
-                        dev,
-                        dev.to_bits()
-                    );
-                }
+            a.push(v(r, r >> 60));
+            b.push(v(r >> 24, r >> 61));
+        }
+    }
+    (a, b)
+}
+
+/// `himap devices --divide N`: [`divide_on_device`] over [`division_pairs`], each quotient
+/// list against the CPU's correctly rounded quotients: mismatches (NaN equals NaN), the
+/// largest difference in ULP, the first few mismatching pairs, and the dispatch times.
+pub fn check_division(n: u32) -> String {
+    let mut s = String::new();
+    let n = n.max(1) as usize;
+    let (a, b) = division_pairs(n);
+    let (kernels, device_div, times) = match divide_on_device(&a, &b) {
+        Ok(r) => r,
+        Err(e) => return format!("division: FAILED: {e}\n"),
+    };
+    let _ = writeln!(s, "division ({n} pairs):");
+    let key = |v: f32| {
+        let u = v.to_bits();
+        if u >> 31 == 1 {
+            -((u & 0x7fff_ffff) as i64)
+        } else {
+            u as i64
+        }
+    };
+    for (label, q) in [
+        ("math::div (kernels)", &kernels),
+        ("OpFDiv (device)", &device_div),
+    ] {
+        let (mut bad, mut worst) = (0usize, 0u64);
+        let mut lines = String::new();
+        for i in 0..n {
+            let (cpu, dev) = (a[i] / b[i], q[i]);
+            if cpu.to_bits() == dev.to_bits() || (cpu.is_nan() && dev.is_nan()) {
+                continue;
             }
-            let _ = writeln!(
-                s,
-                "  {label:<22} {bad} of {n} differ from the CPU (largest {worst} ULP)"
-            );
-            s.push_str(&lines);
+            bad += 1;
+            if !cpu.is_nan() && !dev.is_nan() {
+                worst = worst.max((key(cpu) - key(dev)).unsigned_abs());
+            }
+            if bad <= 6 {
+                let _ = writeln!(
+                    lines,
+                    "      {:e} ({:#010x}) / {:e} ({:#010x}): CPU {:e} ({:#010x}), device {:e} ({:#010x})",
+                    a[i],
+                    a[i].to_bits(),
+                    b[i],
+                    b[i].to_bits(),
+                    cpu,
+                    cpu.to_bits(),
+                    dev,
+                    dev.to_bits()
+                );
+            }
         }
         let _ = writeln!(
             s,
-            "  dispatch + wait: {:.2} / {:.2} / {:.2} ms (3 runs)",
-            times[0], times[1], times[2]
+            "  {label:<22} {bad} of {n} differ from the CPU (largest {worst} ULP)"
         );
-        Ok(())
-    })();
-    if let Err(e) = r {
-        let _ = writeln!(s, "  FAILED: {e}");
+        s.push_str(&lines);
     }
+    let _ = writeln!(
+        s,
+        "  dispatch + wait: {:.2} / {:.2} / {:.2} ms (3 runs)",
+        times[0], times[1], times[2]
+    );
     s
 }
 

@@ -23,8 +23,8 @@ mod raw;
 
 pub use backend::{PassTime, VulkanBackend, VulkanOptions};
 pub use device::{
-    check_division, check_pipelines, describe_devices, list_devices, DeviceInfo, DeviceKind,
-    DEVICE_ENV,
+    check_division, check_pipelines, describe_devices, divide_on_device, division_pairs,
+    list_devices, DeviceInfo, DeviceKind, DEVICE_ENV,
 };
 pub use error::VulkanError;
 pub use passes::BackwardPass;
