@@ -1301,6 +1301,25 @@ mod tests {
         }
     }
 
+    /// `unpack_finite`'s loop-free normalisation of subnormals equals shifting one bit at a
+    /// time, for every subnormal significand (and a few normal numbers).
+    #[test]
+    fn subnormals_unpack_like_one_bit_at_a_time() {
+        for m in (1u32..0x0080_0000).chain([0x0080_0000, 0x3f80_0001, 0x7f7f_ffff]) {
+            let (mut e, mut x) = ((m >> 23) as i32, m & 0x007f_ffff);
+            if e == 0 {
+                e = 1;
+                while x & 0x0080_0000 == 0 {
+                    x <<= 1;
+                    e -= 1;
+                }
+            } else {
+                x |= 0x0080_0000;
+            }
+            assert_eq!(unpack_finite(m), (e, x), "{m:#x}");
+        }
+    }
+
     /// `div_rn`'s correction step recovers the exact quotient from a hardware quotient that is
     /// off by up to 16 ULP either way (Vulkan allows `OpFDiv` 2.5 ULP): on the CPU the
     /// estimate is exact, so it is pushed away on purpose here.
