@@ -546,19 +546,7 @@ fn devices(a: &DevicesArgs) -> anyhow::Result<()> {
     print!("{}", himap_vulkan::describe_devices());
     if a.pipelines {
         let words = match &a.spirv {
-            Some(p) => {
-                let b = std::fs::read(p).with_context(|| format!("reading {}", p.display()))?;
-                anyhow::ensure!(
-                    b.len() % 4 == 0 && b.len() >= 20,
-                    "{} is not a SPIR-V module",
-                    p.display()
-                );
-                Some(
-                    b.chunks_exact(4)
-                        .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
-                        .collect::<Vec<u32>>(),
-                )
-            }
+            Some(p) => Some(himap_vulkan::read_spirv(p).map_err(anyhow::Error::msg)?),
             None => None,
         };
         print!(

@@ -50,6 +50,32 @@ use spirv_std::glam::UVec3;
 use spirv_std::memory::{Scope, Semantics};
 use spirv_std::spirv;
 
+/// `let ($n, $window) = ...`: the mapping window's frame count and its `WindowView` (the
+/// word poses and slot images it borrows stay in the caller's scope) from the window words
+/// and the image store, for the pixel passes. A macro rather than a function: a function
+/// returning the borrowed parts changes the module's access chains, and the module is the
+/// one verified bit for bit on an NVIDIA H200.
+macro_rules! window_view {
+    (let ($n:ident, $window:ident) = $window_words:expr, $images:expr) => {
+        let ($n, width, height, slots) = words::window_frames($window_words);
+        let poses = words::WordPoses {
+            words: $window_words,
+            n: $n,
+        };
+        let imgs = WindowImages {
+            width,
+            height,
+            slots,
+            pixels: $images,
+        };
+        let $window = WindowView {
+            k: words::intrinsics_from_words($window_words, 0),
+            poses: &poses,
+            images: &imgs,
+        };
+    };
+}
+
 /// A [`GradSink`] over a storage buffer: each contribution is converted with
 /// [`fixed::to_fixed`] and added with a 64-bit integer atomic, so the sums equal
 /// `himap_core::FixedSink`'s bit for bit in any order. Indices past the end are dropped.
@@ -947,22 +973,7 @@ pub fn pixel_rays_cs(
         return;
     }
     let i = (pc.first + id.x) as usize;
-    let (n, width, height, slots) = words::window_frames(window_words);
-    let poses = words::WordPoses {
-        words: window_words,
-        n,
-    };
-    let imgs = WindowImages {
-        width,
-        height,
-        slots,
-        pixels: images,
-    };
-    let window = WindowView {
-        k: words::intrinsics_from_words(window_words, 0),
-        poses: &poses,
-        images: &imgs,
-    };
+    window_view!(let (_n, window) = window_words, images);
     let px = read_pixel(pixels, i);
     let (ray, _) = pixel::pixel_ray(&window, px);
     let b = i * RAY_FLOATS;
@@ -1066,22 +1077,7 @@ pub fn pixel_loss_cs(
     let i = (pc.first + id.x) as usize;
     let layout = words::model_layout_from_words(model_words, 0);
     let beta = first_or_zero(p_beta);
-    let (n, width, height, slots) = words::window_frames(window_words);
-    let poses = words::WordPoses {
-        words: window_words,
-        n,
-    };
-    let imgs = WindowImages {
-        width,
-        height,
-        slots,
-        pixels: images,
-    };
-    let window = WindowView {
-        k: words::intrinsics_from_words(window_words, 0),
-        poses: &poses,
-        images: &imgs,
-    };
+    window_view!(let (n, window) = window_words, images);
     let loss = words::mapping_loss_from_words(window_words, words::WINDOW_LOSS);
     let px = read_pixel(pixels, i);
     let mut res = PixelResult::default();

@@ -95,13 +95,18 @@ pub const SPIRV_ENV: &str = "HIMAP_SPIRV";
 /// The module the backend runs: the file named by [`SPIRV_ENV`] when it is set (an error
 /// when it cannot be read or is not SPIR-V), else the built-in [`shader_words`].
 pub fn runtime_shader_words() -> Result<Vec<u32>, VulkanError> {
-    let Ok(path) = std::env::var(SPIRV_ENV) else {
-        return Ok(shader_words());
-    };
-    let bad = |why: String| VulkanError::Module(format!("{SPIRV_ENV}={path}: {why}"));
-    let b = std::fs::read(&path).map_err(|e| bad(e.to_string()))?;
+    match std::env::var(SPIRV_ENV) {
+        Ok(path) => read_spirv(std::path::Path::new(&path))
+            .map_err(|why| VulkanError::Module(format!("{SPIRV_ENV}={path}: {why}"))),
+        Err(_) => Ok(shader_words()),
+    }
+}
+
+/// A SPIR-V module file as `u32` words (little-endian); the error says why it is not one.
+pub fn read_spirv(path: &std::path::Path) -> Result<Vec<u32>, String> {
+    let b = std::fs::read(path).map_err(|e| format!("reading {}: {e}", path.display()))?;
     if b.len() % 4 != 0 || b.len() < 20 || b[..4] != [0x03, 0x02, 0x23, 0x07] {
-        return Err(bad("not a SPIR-V module".into()));
+        return Err(format!("{} is not a SPIR-V module", path.display()));
     }
     Ok(b.chunks_exact(4)
         .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
