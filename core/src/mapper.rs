@@ -15,8 +15,10 @@
 //!   back to the `local_frames` \[15\] most recent frames: of the frames leaving it, the oldest
 //!   joins the keyframe cache and the others are dropped (their slots are freed). Then up to
 //!   `window_keyframes` \[5\] keyframes are chosen from the cache by view overlap with the newest
-//!   frame (below) and `iters` \[20\] iterations run on window = chosen keyframes (oldest first)
-//!   + local frames (oldest first), colour weight `lambda_color` \[0.001\], detached colour.
+//!   frame (below) and `iters` \[20\] iterations run on the window (the chosen keyframes,
+//!   then the local frames, each oldest first), colour weight `lambda_color` \[0.001\],
+//!   detached colour (unless `online_color_to_geometry`; the final refinement has its own
+//!   `refine_color_to_geometry` and `refine_lambda_color`).
 //! - **Keyframe cache full** (`max_keyframes`): [`KeyframeOverflow::Thin`] drops every other
 //!   keyframe (keeps cache indices 0, 2, 4, ...: the cache keeps covering the whole
 //!   trajectory at half the density), [`KeyframeOverflow::DropOldest`] drops the oldest.
@@ -121,6 +123,12 @@ pub struct MapperConfig {
     pub init_iters: u32,
     /// Initialisation iterations whose colour loss reaches the geometry (250).
     pub init_color_iters: u32,
+    /// Whether the colour loss reaches the geometry in the online updates too (false:
+    /// detached rendering weights after the initialisation's `init_color_iters`, DIM-SLAM's
+    /// and the paper's). With it the colour term carves what hides other views' colours and
+    /// pulls surfaces to where the views agree, as in a NeRF; its share against the warping
+    /// term is `lambda_color`. The final refinement has its own `refine_color_to_geometry`.
+    pub online_color_to_geometry: bool,
     /// Iterations per online update (20).
     pub iters: u32,
     /// Pixels sampled per iteration (over the whole window).
@@ -226,6 +234,13 @@ pub struct MapperConfig {
     /// Whether the final refinement moves the geometry (grid, decoder, beta) too (true);
     /// false refines the appearance only (the geometry groups' rates are 0 during it).
     pub refine_geometry: bool,
+    /// Whether the final refinement's colour loss reaches the geometry (false: detached
+    /// rendering weights, as online). Every view is held by then, so the colour term can
+    /// make the surfaces consistent across all of them (no effect with `refine_geometry`
+    /// false).
+    pub refine_color_to_geometry: bool,
+    /// Colour weight of the final refinement (0: `lambda_color`, the online weight).
+    pub refine_lambda_color: f32,
 }
 
 impl MapperConfig {
@@ -239,6 +254,7 @@ impl MapperConfig {
             init_frames: 15,
             init_iters: 1500,
             init_color_iters: 250,
+            online_color_to_geometry: false,
             iters: 20,
             pixels,
             border: 10,
@@ -274,6 +290,8 @@ impl MapperConfig {
             refine_block: 10,
             refine_lr_end: 1.0,
             refine_geometry: true,
+            refine_color_to_geometry: false,
+            refine_lambda_color: 0.0,
         }
     }
 
@@ -381,7 +399,11 @@ impl MapperConfig {
             ));
         }
         let ok = |x: f32| x.is_finite() && x >= 0.0;
-        if !(ok(self.lambda_color_init) && ok(self.lambda_color) && ok(self.lambda_warp)) {
+        if !(ok(self.lambda_color_init)
+            && ok(self.lambda_color)
+            && ok(self.lambda_warp)
+            && ok(self.refine_lambda_color))
+        {
             return Err(Error::InvalidConfig(
                 "mapper: loss weights must be finite and >= 0",
             ));
@@ -1470,13 +1492,20 @@ impl<'a, B: Backend> Mapper<'a, B> {
         MappingLoss {
             lambda_color: if init {
                 self.cfg.lambda_color_init
+            } else if kind == UpdateKind::Refine && self.cfg.refine_lambda_color > 0.0 {
+                self.cfg.refine_lambda_color
             } else {
                 self.cfg.lambda_color
             },
             lambda_warp: on(self.cfg.lambda_warp),
             color_scale: inv,
             warp_scale: inv,
-            color_to_geometry: init && it < self.cfg.init_color_iters,
+            color_to_geometry: match kind {
+                UpdateKind::Init => it < self.cfg.init_color_iters,
+                UpdateKind::Online => self.cfg.online_color_to_geometry,
+                // an appearance-only refinement has no geometry to reach
+                UpdateKind::Refine => self.cfg.refine_color_to_geometry && geometry,
+            },
             seed: hash_u32(total ^ (self.cfg.seed as u32)),
             warp: self.cfg.warp,
             lambda_depth_prior: on(if init && it < self.cfg.depth_prior_iters {
@@ -1900,6 +1929,70 @@ mod tests {
             fy: 50.0,
             cx: 31.5,
             cy: 23.5,
+        }
+    }
+
+    #[test]
+    fn color_to_geometry_settings_reach_online_updates_and_the_refinement() {
+        // off (the default): only the first `init_color_iters` initialisation iterations
+        let run = |online: bool, refine_geometry: bool| {
+            let mut c = cfg();
+            c.online_color_to_geometry = online;
+            c.refine_color_to_geometry = online;
+            (c.refine_iters, c.refine_window, c.refine_block) = (20, 4, 10);
+            c.refine_geometry = refine_geometry;
+            let (mut px, mut res) = buffers();
+            let mut m =
+                Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+            push_n(&mut m, 20);
+            let online = m.backend().calls.len();
+            m.refine(&mut |_| {}).unwrap();
+            let calls = &m.backend().calls;
+            let ctg = |r: core::ops::Range<usize>| -> Vec<bool> {
+                calls[r].iter().map(|c| c.color_to_geometry).collect()
+            };
+            (ctg(0..7), ctg(7..online), ctg(online..calls.len()))
+        };
+        let init = [true, true, true, false, false, false, false];
+        let (i, o, r) = run(false, true);
+        assert_eq!(i, init);
+        assert!(o.len() == 4 && r.len() == 20);
+        assert!(!o.iter().any(|&b| b) && !r.iter().any(|&b| b));
+        let (i, o, r) = run(true, true);
+        assert_eq!(i, init, "the initialisation keeps its own schedule");
+        assert!(o.len() == 4 && r.len() == 20);
+        assert!(o.iter().all(|&b| b) && r.iter().all(|&b| b));
+        let (_, o, r) = run(true, false);
+        assert!(o.iter().all(|&b| b), "online updates");
+        assert!(
+            !r.iter().any(|&b| b),
+            "an appearance-only refinement has no geometry"
+        );
+        // the refinement alone, with its own colour weight; the online updates keep theirs
+        let mut c = cfg();
+        c.refine_color_to_geometry = true;
+        c.refine_lambda_color = 0.5;
+        (c.refine_iters, c.refine_window, c.refine_block) = (20, 4, 10);
+        let (mut px, mut res) = buffers();
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 20);
+        let online = m.backend().calls.len();
+        m.refine(&mut |_| {}).unwrap();
+        let calls = &m.backend().calls;
+        assert!(calls[7..online]
+            .iter()
+            .all(|c| !c.color_to_geometry && c.lambda_color == 0.001));
+        assert!(calls[online..]
+            .iter()
+            .all(|c| c.color_to_geometry && c.lambda_color == 0.5));
+        assert_eq!(calls.len(), online + 20);
+        // a negative or non-finite refinement weight is refused
+        for w in [-1.0, f32::NAN] {
+            let mut c = cfg();
+            c.refine_lambda_color = w;
+            let (mut px, mut res) = buffers();
+            let m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res);
+            assert!(matches!(m, Err(Error::InvalidConfig(_))), "{w}");
         }
     }
 
