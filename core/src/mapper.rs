@@ -1934,13 +1934,9 @@ mod tests {
 
     #[test]
     fn color_to_geometry_settings_reach_online_updates_and_the_refinement() {
-        // off (the default): only the first `init_color_iters` initialisation iterations
-        let run = |online: bool, refine_geometry: bool| {
-            let mut c = cfg();
-            c.online_color_to_geometry = online;
-            c.refine_color_to_geometry = online;
+        // The calls of the initialisation, the 4 online updates and a 20-iteration refinement.
+        let phases = |mut c: MapperConfig| -> [Vec<Call>; 3] {
             (c.refine_iters, c.refine_window, c.refine_block) = (20, 4, 10);
-            c.refine_geometry = refine_geometry;
             let (mut px, mut res) = buffers();
             let mut m =
                 Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
@@ -1948,21 +1944,28 @@ mod tests {
             let online = m.backend().calls.len();
             m.refine(&mut |_| {}).unwrap();
             let calls = &m.backend().calls;
-            let ctg = |r: core::ops::Range<usize>| -> Vec<bool> {
-                calls[r].iter().map(|c| c.color_to_geometry).collect()
-            };
-            (ctg(0..7), ctg(7..online), ctg(online..calls.len()))
+            [0..7, 7..online, online..calls.len()].map(|r| calls[r].to_vec())
         };
+        let ctg =
+            |calls: &[Call]| -> Vec<bool> { calls.iter().map(|c| c.color_to_geometry).collect() };
+        let with = |online: bool, refine_geometry: bool| {
+            let mut c = cfg();
+            c.online_color_to_geometry = online;
+            c.refine_color_to_geometry = online;
+            c.refine_geometry = refine_geometry;
+            phases(c).map(|p| ctg(&p))
+        };
+        // off (the default): only the first `init_color_iters` initialisation iterations
         let init = [true, true, true, false, false, false, false];
-        let (i, o, r) = run(false, true);
+        let [i, o, r] = with(false, true);
         assert_eq!(i, init);
         assert!(o.len() == 4 && r.len() == 20);
         assert!(!o.iter().any(|&b| b) && !r.iter().any(|&b| b));
-        let (i, o, r) = run(true, true);
+        let [i, o, r] = with(true, true);
         assert_eq!(i, init, "the initialisation keeps its own schedule");
         assert!(o.len() == 4 && r.len() == 20);
         assert!(o.iter().all(|&b| b) && r.iter().all(|&b| b));
-        let (_, o, r) = run(true, false);
+        let [_, o, r] = with(true, false);
         assert!(o.iter().all(|&b| b), "online updates");
         assert!(
             !r.iter().any(|&b| b),
@@ -1972,20 +1975,14 @@ mod tests {
         let mut c = cfg();
         c.refine_color_to_geometry = true;
         c.refine_lambda_color = 0.5;
-        (c.refine_iters, c.refine_window, c.refine_block) = (20, 4, 10);
-        let (mut px, mut res) = buffers();
-        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
-        push_n(&mut m, 20);
-        let online = m.backend().calls.len();
-        m.refine(&mut |_| {}).unwrap();
-        let calls = &m.backend().calls;
-        assert!(calls[7..online]
+        let [_, o, r] = phases(c);
+        assert!(o
             .iter()
             .all(|c| !c.color_to_geometry && c.lambda_color == 0.001));
-        assert!(calls[online..]
+        assert!(r
             .iter()
             .all(|c| c.color_to_geometry && c.lambda_color == 0.5));
-        assert_eq!(calls.len(), online + 20);
+        assert_eq!(r.len(), 20);
         // a negative or non-finite refinement weight is refused
         for w in [-1.0, f32::NAN] {
             let mut c = cfg();
