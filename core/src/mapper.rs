@@ -241,6 +241,10 @@ pub struct MapperConfig {
     pub refine_color_to_geometry: bool,
     /// Colour weight of the final refinement (0: `lambda_color`, the online weight).
     pub refine_lambda_color: f32,
+    /// Planarity weight of the final refinement (0: `lambda_planar`, the online weight):
+    /// the prior (with its triplets and their settings) can shape the final surfaces
+    /// without acting on the online updates.
+    pub refine_lambda_planar: f32,
 }
 
 impl MapperConfig {
@@ -292,6 +296,7 @@ impl MapperConfig {
             refine_geometry: true,
             refine_color_to_geometry: false,
             refine_lambda_color: 0.0,
+            refine_lambda_planar: 0.0,
         }
     }
 
@@ -408,7 +413,11 @@ impl MapperConfig {
                 "mapper: loss weights must be finite and >= 0",
             ));
         }
-        if !(ok(self.lambda_planar) && ok(self.planar_edge) && ok(self.planar_beta)) {
+        if !(ok(self.lambda_planar)
+            && ok(self.refine_lambda_planar)
+            && ok(self.planar_edge)
+            && ok(self.planar_beta))
+        {
             return Err(Error::InvalidConfig(
                 "mapper: lambda_planar, planar_edge and planar_beta must be finite and >= 0",
             ));
@@ -430,7 +439,7 @@ impl MapperConfig {
         } else {
             (1, self.planar_spacing)
         };
-        if self.lambda_planar > 0.0
+        if (self.lambda_planar > 0.0 || (self.refine_iters > 0 && self.refine_lambda_planar > 0.0))
             && (self.planar_spacing < min
                 || store.width <= 2 * (self.border + room)
                 || store.height <= 2 * (self.border + room))
@@ -1469,8 +1478,17 @@ impl<'a, B: Backend> Mapper<'a, B> {
     fn draw_batch(&mut self, kind: UpdateKind, off: usize) {
         self.pix_off = off;
         self.sample_pixels(kind);
-        if self.cfg.lambda_planar > 0.0 {
+        if self.planar_weight(kind) > 0.0 {
             self.make_triplets();
+        }
+    }
+
+    /// The planarity prior's weight in an update of `kind`.
+    fn planar_weight(&self, kind: UpdateKind) -> f32 {
+        if kind == UpdateKind::Refine && self.cfg.refine_lambda_planar > 0.0 {
+            self.cfg.refine_lambda_planar
+        } else {
+            self.cfg.lambda_planar
         }
     }
 
@@ -1520,7 +1538,7 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 self.cfg.depth_prior_near
             },
             planar: PlanarConfig {
-                weight: on(self.cfg.lambda_planar),
+                weight: on(self.planar_weight(kind)),
                 edge: self.cfg.planar_edge,
                 beta: self.cfg.planar_beta,
                 gated: self.cfg.planar_gate,
@@ -1677,6 +1695,8 @@ mod tests {
         pixels: Vec<PixelSample>,
         lambda_color: f32,
         color_to_geometry: bool,
+        /// The planarity prior's weight.
+        planar: f32,
         /// The first group's learning rate at the step.
         lr: f32,
     }
@@ -1813,6 +1833,7 @@ mod tests {
                 pixels: batch.pixels.to_vec(),
                 lambda_color: batch.loss.lambda_color,
                 color_to_geometry: batch.loss.color_to_geometry,
+                planar: batch.loss.planar.weight,
                 lr: batch.lr.map_or(self.lr[0], |l| l[0]),
             });
             for (r, p) in results.iter_mut().zip(batch.pixels) {
@@ -1932,19 +1953,27 @@ mod tests {
         }
     }
 
+    /// The steps of 20 pushed frames (the initialisation's 7, then 4 online updates) and of
+    /// a 20-iteration refinement (windows of 4, blocks of 10) under `c`: (online, refinement).
+    fn run_and_refinement_calls(mut c: MapperConfig) -> (Vec<Call>, Vec<Call>) {
+        (c.refine_iters, c.refine_window, c.refine_block) = (20, 4, 10);
+        let (mut px, mut res) = buffers();
+        let mut m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+        push_n(&mut m, 20);
+        let online = m.backend().calls.len();
+        m.refine(&mut |_| {}).unwrap();
+        let mut calls = m.backend().calls.clone();
+        let refine = calls.split_off(online);
+        (calls, refine)
+    }
+
     #[test]
     fn color_to_geometry_settings_reach_online_updates_and_the_refinement() {
         // The calls of the initialisation, the 4 online updates and a 20-iteration refinement.
-        let phases = |mut c: MapperConfig| -> [Vec<Call>; 3] {
-            (c.refine_iters, c.refine_window, c.refine_block) = (20, 4, 10);
-            let (mut px, mut res) = buffers();
-            let mut m =
-                Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
-            push_n(&mut m, 20);
-            let online = m.backend().calls.len();
-            m.refine(&mut |_| {}).unwrap();
-            let calls = &m.backend().calls;
-            [0..7, 7..online, online..calls.len()].map(|r| calls[r].to_vec())
+        let phases = |c: MapperConfig| -> [Vec<Call>; 3] {
+            let (mut run, refine) = run_and_refinement_calls(c);
+            let online = run.split_off(7);
+            [run, online, refine]
         };
         let ctg =
             |calls: &[Call]| -> Vec<bool> { calls.iter().map(|c| c.color_to_geometry).collect() };
@@ -1984,13 +2013,64 @@ mod tests {
             .all(|c| c.color_to_geometry && c.lambda_color == 0.5));
         assert_eq!(r.len(), 20);
         // a negative or non-finite refinement weight is refused
+        refuses_bad_weights(|c, w| c.refine_lambda_color = w);
+    }
+
+    /// A configuration with `set(w)` for a negative and a non-finite weight `w` is refused.
+    fn refuses_bad_weights(set: impl Fn(&mut MapperConfig, f32)) {
         for w in [-1.0, f32::NAN] {
             let mut c = cfg();
-            c.refine_lambda_color = w;
+            set(&mut c, w);
             let (mut px, mut res) = buffers();
             let m = Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res);
             assert!(matches!(m, Err(Error::InvalidConfig(_))), "{w}");
         }
+    }
+
+    #[test]
+    fn the_refinement_has_its_own_planarity_weight_and_triplets() {
+        // (online, refinement) planarity weights, and whether each phase drew line triplets
+        let run = |online: f32, refine: f32| -> [(Vec<f32>, bool); 2] {
+            let mut c = cfg();
+            c.lambda_planar = online;
+            c.refine_lambda_planar = refine;
+            c.planar_spacing = 4;
+            let (online, refine) = run_and_refinement_calls(c);
+            [online, refine].map(|calls| {
+                let lines = calls
+                    .iter()
+                    .flat_map(|c| c.pixels.chunks_exact(3))
+                    .filter(|t| crate::train::pixel::is_line_triplet(&[t[0], t[1], t[2]]))
+                    .count();
+                // a triplet per triple: far more than random draws would line up
+                (
+                    calls.iter().map(|c| c.planar).collect(),
+                    lines * 2 > calls.len() * (calls[0].pixels.len() / 3),
+                )
+            })
+        };
+        let weights = |p: &(Vec<f32>, bool)| p.0.iter().all(|&w| w == p.0[0]).then(|| p.0[0]);
+        let [o, r] = run(0.0, 0.0);
+        assert_eq!(
+            (weights(&o), o.1, weights(&r), r.1),
+            (Some(0.0), false, Some(0.0), false)
+        );
+        let [o, r] = run(0.0, 0.2);
+        assert_eq!(
+            (weights(&o), o.1),
+            (Some(0.0), false),
+            "online stays without the prior"
+        );
+        assert_eq!((weights(&r), r.1), (Some(0.2), true));
+        let [o, r] = run(0.1, 0.0);
+        assert_eq!(
+            (weights(&o), o.1, weights(&r), r.1),
+            (Some(0.1), true, Some(0.1), true)
+        );
+        let [o, r] = run(0.1, 0.3);
+        assert_eq!((weights(&o), weights(&r)), (Some(0.1), Some(0.3)));
+        // the refinement's weight is checked like the others
+        refuses_bad_weights(|c, w| c.refine_lambda_planar = w);
     }
 
     #[test]

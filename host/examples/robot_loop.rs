@@ -29,6 +29,7 @@ use anyhow::Context;
 use clap::Parser;
 use himap::config::Config;
 use himap::dataset::{self, LoadOptions};
+use himap::grow::Growth;
 use himap::mapper_cli::{pack_image, start_map};
 use himap::query::{self, MapQuery, QueryOptions};
 use himap::select::{decide, BackendChoice, MapBackend};
@@ -155,6 +156,10 @@ fn main() -> anyhow::Result<()> {
         height: k.height,
         slots: cfg.mapper_config()?.slots_needed(),
     };
+    // The default box grows with the walk, as in `himap map` (the horizontal axes of the
+    // first camera's box).
+    let grow = (cfg.scene.grow && start.box_src == himap::config::DEFAULT_BOX)
+        .then(|| himap::grow::horizontal_axes(&first));
     let choice: BackendChoice = args.backend.parse()?;
     let decision = decide(choice);
     println!("backend: {}", decision.reason);
@@ -301,6 +306,7 @@ fn main() -> anyhow::Result<()> {
                     &req_rx,
                     tick_tx.clone(),
                     args.realtime,
+                    grow,
                 )),
                 Err(e) if choice == BackendChoice::Auto => {
                     println!("backend: the Vulkan backend failed ({e}); using the CPU");
@@ -328,6 +334,7 @@ fn main() -> anyhow::Result<()> {
                     &req_rx,
                     tick_tx.clone(),
                     args.realtime,
+                    grow,
                 )?
             }
         };
@@ -384,6 +391,7 @@ fn map_loop<B: MapBackend>(
     requests: &mpsc::Receiver<Request>,
     ticks: mpsc::Sender<Tick>,
     realtime: bool,
+    mut grow: Option<[usize; 2]>,
 ) -> anyhow::Result<LoopStats>
 where
     B::Error: std::error::Error + Send + Sync + 'static,
@@ -464,6 +472,19 @@ where
             }
         }
         let t = Instant::now();
+        if let Some(axes) = grow {
+            let aabb = cfg_box(mapper.backend());
+            match himap::grow::grow_before_push(cfg, &mut mapper, &aabb, &axes, &f.pose)? {
+                Growth::Same => {}
+                Growth::Grown { aabb, .. } => {
+                    println!("mapping: frame {}: the scene box grows to {aabb:?}", f.seq)
+                }
+                Growth::Refused(why) => {
+                    println!("mapping: frame {}: {why}", f.seq);
+                    grow = None;
+                }
+            }
+        }
         mapper
             .push_frame(&f.rgba, f.pose)
             .map_err(|e| anyhow::anyhow!("mapping frame {}: {e}", f.seq))?;

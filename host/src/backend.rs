@@ -663,6 +663,18 @@ impl ParallelCpuBackend {
         self
     }
 
+    /// Replaces the map by `data` over another layout (a grown scene box,
+    /// [`crate::grow`]): new gradient buffers and worker state for its size; the image slots,
+    /// the thread count and the learning rates stay.
+    pub fn regrow(&mut self, data: ModelData) -> Result<(), CpuError> {
+        let mut new = ParallelCpuBackend::new(data, self.adam, self.threads())?;
+        new.store = self.store;
+        new.images = std::mem::take(&mut self.images);
+        new.name = std::mem::take(&mut self.name);
+        *self = new;
+        Ok(())
+    }
+
     /// Mutable access to the model data (loading a saved map; the gradients are untouched).
     pub fn data_mut(&mut self) -> &mut ModelData {
         self.live_stale = true;

@@ -207,12 +207,27 @@ pub fn path_of(path: &Path) -> PathBuf {
 /// Whether a checkpoint's configuration (TOML) and a resuming run's give the same mapping:
 /// equal but for the final refinement's settings (`mapper.refine_*`), which act only after
 /// the last frame, so that a run checkpointed at its last frame can be refined again with
-/// other settings.
+/// other settings (and the planarity prior's `mapper.planar_*` when its online weight
+/// `lambda_planar` is 0: they then act only in the refinement). Both are read back as configurations first, so that a setting added
+/// after the checkpoint was written, absent from it, counts as its documented default (the
+/// behaviour before the setting existed).
 fn same_run_config(written: &str, resuming: &str) -> bool {
     fn strip(text: &str) -> Option<toml::Table> {
-        let mut t: toml::Table = toml::from_str(text).ok()?;
+        let text = match toml::from_str::<Config>(text) {
+            Ok(c) => c.to_toml(),
+            Err(_) => text.to_string(),
+        };
+        let mut t: toml::Table = toml::from_str(&text).ok()?;
         if let Some(toml::Value::Table(m)) = t.get_mut("mapper") {
-            m.retain(|k, _| !k.starts_with("refine_"));
+            // without the online planarity prior its settings act only in the refinement
+            let online_planar = m
+                .get("lambda_planar")
+                .and_then(|v| v.as_float())
+                .is_some_and(|w| w != 0.0);
+            m.retain(|k, _| {
+                !k.starts_with("refine_")
+                    && (online_planar || k == "lambda_planar" || !k.starts_with("planar_"))
+            });
         }
         Some(t)
     }
@@ -275,4 +290,63 @@ pub fn load(
         );
     }
     Ok((run, data))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The TOML of `c` with the line setting `mapper.key` removed, as a binary from before
+    /// that setting wrote it.
+    fn without(c: &Config, key: &str) -> String {
+        let mut t: toml::Table = toml::from_str(&c.to_toml()).unwrap();
+        let m = t.get_mut("mapper").unwrap().as_table_mut().unwrap();
+        assert!(m.remove(key).is_some(), "{key} is a mapper setting");
+        toml::to_string_pretty(&t).unwrap()
+    }
+
+    #[test]
+    fn a_checkpoint_from_before_a_setting_resumes_with_its_default_only() {
+        let small = Config::small();
+        let mut old = without(&small, "online_color_to_geometry");
+        for key in ["refine_color_to_geometry", "refine_lambda_color"] {
+            let mut t: toml::Table = toml::from_str(&old).unwrap();
+            t.get_mut("mapper")
+                .unwrap()
+                .as_table_mut()
+                .unwrap()
+                .remove(key);
+            old = toml::to_string_pretty(&t).unwrap();
+        }
+        assert!(same_run_config(&old, &small.to_toml()));
+        let mut on = small.clone();
+        on.mapper.online_color_to_geometry = true;
+        assert!(!same_run_config(&old, &on.to_toml()));
+        assert!(!same_run_config(&small.to_toml(), &on.to_toml()));
+        // the refinement's settings may differ, the online ones may not
+        let mut refine = small.clone();
+        refine.mapper.refine_iters += 1000;
+        refine.mapper.refine_lambda_color = 3.0;
+        assert!(same_run_config(&old, &refine.to_toml()));
+        // the planarity prior's settings act only in the refinement when it is off online
+        let mut planar = refine.clone();
+        planar.mapper.refine_lambda_planar = 0.1;
+        planar.mapper.planar_region_step = 0.03;
+        planar.mapper.planar_spacing = 160;
+        assert!(same_run_config(&old, &planar.to_toml()));
+        let mut online = planar.clone();
+        online.mapper.lambda_planar = 0.1;
+        assert!(!same_run_config(&old, &online.to_toml()));
+        let mut spacing = online.clone();
+        spacing.mapper.planar_spacing = 8;
+        assert!(!same_run_config(&online.to_toml(), &spacing.to_toml()));
+        let mut iters = small.clone();
+        iters.mapper.iters += 1;
+        assert!(!same_run_config(&old, &iters.to_toml()));
+        // a setting without a default stays required
+        assert!(!same_run_config(
+            &without(&small, "iters"),
+            &small.to_toml()
+        ));
+    }
 }

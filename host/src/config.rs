@@ -14,8 +14,9 @@
 //!    when it starts (nothing reads a later pose): `scene.default_horizontal` (24 m) on each
 //!    horizontal side, centred on the camera, and from `scene.default_below` (2 m) below to
 //!    `scene.default_above` (3 m) above it. "Up" is the world axis closest to the first
-//!    camera's image up direction (`-y` of the camera frame). A camera that later leaves the
-//!    box is warned about (`frames_outside_box` in summary.json).
+//!    camera's image up direction (`-y` of the camera frame). This box grows as the camera
+//!    walks (`scene.grow`, [`crate::grow`]). A camera that leaves the box (a given one, or a
+//!    default one that cannot grow) is warned about (`frames_outside_box` in summary.json).
 //!
 //! Rays are sampled up to `model.max_depth` (6 m) from the camera, so a large box does not
 //! spread the samples; the map's memory for the box is printed before mapping and checked
@@ -161,6 +162,8 @@ struct MapperDef {
     init_frames: u32,
     init_iters: u32,
     init_color_iters: u32,
+    // added after checkpoints existed: absent means the behaviour before it (off)
+    #[serde(default)]
     online_color_to_geometry: bool,
     iters: u32,
     pixels: u32,
@@ -192,8 +195,14 @@ struct MapperDef {
     refine_block: u32,
     refine_lr_end: f32,
     refine_geometry: bool,
+    // added after checkpoints existed: absent means the behaviour before them (a detached
+    // colour at the online weight)
+    #[serde(default)]
     refine_color_to_geometry: bool,
+    #[serde(default)]
     refine_lambda_color: f32,
+    #[serde(default)]
+    refine_lambda_planar: f32,
     max_keyframes: u32,
     #[serde(with = "OverflowDef")]
     keyframe_overflow: KeyframeOverflow,
@@ -234,6 +243,13 @@ pub struct SceneSection {
     /// Largest memory the map of the scene box may take (MB: parameters, Adam moments and the
     /// CPU backend's gradient buffers); a larger map is an error before anything is allocated.
     pub memory_budget_mb: f64,
+    /// Whether the default box grows as the camera walks ([`crate::grow`]):
+    /// every horizontal face closer to a pushed camera than `grow_margin` (m; 0 = the rays'
+    /// reach, 1.25 `model.max_depth`) moves out by `grow_step` (m), within
+    /// `memory_budget_mb`. A box from the configuration or the dataset never grows.
+    pub grow: bool,
+    pub grow_margin: f32,
+    pub grow_step: f32,
 }
 
 /// Evaluation and outputs of `himap map`.
@@ -378,6 +394,9 @@ impl Config {
                 default_below: 2.0,
                 default_above: 3.0,
                 memory_budget_mb: 8192.0,
+                grow: true,
+                grow_margin: 0.0,
+                grow_step: 6.0,
             },
             eval: EvalSection {
                 every: 1,
@@ -522,6 +541,13 @@ impl Config {
         if !(self.model.max_depth >= 0.0 && self.model.max_depth.is_finite()) {
             bail!("model.max_depth must be >= 0 (0 = up to the box exit)");
         }
+        let s = &self.scene;
+        if !(s.grow_step > 0.0 && s.grow_step.is_finite()) {
+            bail!("scene.grow_step must be positive");
+        }
+        if !(s.grow_margin >= 0.0 && s.grow_margin.is_finite()) {
+            bail!("scene.grow_margin must be >= 0 (0 = model.max_depth)");
+        }
         if !(self.eval.observed_margin >= 0.0 && self.eval.observed_margin.is_finite()) {
             bail!("eval.observed_margin must be >= 0");
         }
@@ -661,11 +687,8 @@ impl Config {
             );
         }
         let o = first.origin();
-        // Image up is -y of the camera frame: the world axis closest to it is "up".
+        let up = up_axis(first);
         let up_world = first.rotate([0.0, -1.0, 0.0]);
-        let up = (0..3)
-            .max_by(|&a, &b| up_world[a].abs().total_cmp(&up_world[b].abs()))
-            .unwrap_or(1);
         let sign = if up_world[up] >= 0.0 { 1.0 } else { -1.0 };
         let mut lo = [0.0f32; 3];
         let mut hi = [0.0f32; 3];
@@ -684,8 +707,20 @@ impl Config {
         if !b.is_valid() {
             bail!("could not place the default scene box around the first camera {o:?}");
         }
-        Ok((b, "default around the first camera"))
+        Ok((b, DEFAULT_BOX))
     }
+}
+
+/// Where the default box comes from ([`Config::scene_bounds`]; the only box that grows).
+pub const DEFAULT_BOX: &str = "default around the first camera";
+
+/// The world axis closest to the camera's image up (`-y` of the camera frame): "up" of the
+/// default box, which grows along the other two.
+pub fn up_axis(first: &Pose) -> usize {
+    let up_world = first.rotate([0.0, -1.0, 0.0]);
+    (0..3)
+        .max_by(|&a, &b| up_world[a].abs().total_cmp(&up_world[b].abs()))
+        .unwrap_or(1)
 }
 
 #[cfg(test)]

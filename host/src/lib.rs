@@ -15,6 +15,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod dump;
 pub mod geo_init;
+pub mod grow;
 pub mod mapper_cli;
 pub mod query;
 pub mod select;

@@ -110,6 +110,10 @@ pub trait MapBackend: Backend {
     /// Replaces the map (parameters, Adam moments and step) by `data` of the same layout
     /// (a resumed run).
     fn import(&mut self, data: &ModelData) -> anyhow::Result<()>;
+    /// Replaces the map by `data` over another scene box (a grown box, [`crate::grow`]);
+    /// `Ok(false)` when the backend cannot change its map's size (the run then keeps its box
+    /// and says so).
+    fn regrow(&mut self, data: ModelData) -> anyhow::Result<bool>;
     /// CPU worker threads (0 for a GPU backend).
     fn threads(&self) -> usize;
     /// The per-pass table of the passes timed so far over `steps` steps taking `seconds`
@@ -141,6 +145,11 @@ impl MapBackend for ParallelCpuBackend {
         );
         *self.data_mut() = data.clone();
         Ok(())
+    }
+
+    fn regrow(&mut self, data: ModelData) -> anyhow::Result<bool> {
+        ParallelCpuBackend::regrow(self, data)?;
+        Ok(true)
     }
 
     fn threads(&self) -> usize {
@@ -194,6 +203,14 @@ impl MapBackend for VulkanBackend {
         }
         self.set_steps(data.t)?;
         Ok(())
+    }
+
+    fn regrow(&mut self, data: ModelData) -> anyhow::Result<bool> {
+        // the device's buffers are sized at construction: a new backend on the same device
+        let mut new = self.regrown(data.layout, data.param_slices())?;
+        MapBackend::import(&mut new, &data)?;
+        *self = new;
+        Ok(true)
     }
 
     fn threads(&self) -> usize {

@@ -572,3 +572,79 @@ fn a_checkpoint_at_the_last_frame_resumes_into_the_refinement() {
     let e = format!("{:#}", run_map(&o).unwrap_err());
     assert!(e.contains("another configuration"), "{e}");
 }
+
+/// `scene.grow`: the default box placed around the first camera grows as the camera walks
+/// (here a 1 m box around a camera circling the room), so no camera ends outside it; a run
+/// stopped after a checkpoint and resumed (its backend built for the first box, the
+/// checkpoint's map over a grown one) ends on the uninterrupted run's map, bit for bit.
+#[test]
+fn the_default_box_grows_with_the_walk_and_resumes_bit_for_bit() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("room");
+    write_synthetic(
+        &data,
+        &SynthOptions {
+            frames: 30,
+            width: 64,
+            height: 48,
+            seed: 1,
+        },
+    )
+    .unwrap();
+    // no metadata box: the default one around the first camera
+    std::fs::remove_file(data.join("scene.json")).unwrap();
+    let mut cfg = tiny_config();
+    cfg.eval.final_every = 0;
+    cfg.scene.default_horizontal = 1.0;
+    cfg.scene.grow_margin = 0.8;
+    cfg.scene.grow_step = 0.5;
+    let fixed = {
+        let mut c = cfg.clone();
+        c.scene.grow = false;
+        run_map(&options(data.clone(), dir.path().join("fixed"), c)).unwrap()
+    };
+    assert_eq!(fixed.scene_box_source, "default around the first camera");
+    assert!(
+        fixed.frames_outside_box > 0,
+        "the walk must leave a 1 m box"
+    );
+    let whole = run_map(&options(
+        data.clone(),
+        dir.path().join("whole"),
+        cfg.clone(),
+    ))
+    .unwrap();
+    assert_eq!(whole.frames_outside_box, 0);
+    let (lo, hi) = (whole.scene_box[0], whole.scene_box[1]);
+    let (flo, fhi) = (fixed.scene_box[0], fixed.scene_box[1]);
+    let grown = (0..3)
+        .filter(|&a| hi[a] - lo[a] > fhi[a] - flo[a] + 0.4)
+        .count();
+    assert!(grown >= 1, "{:?} vs {:?}", whole.scene_box, fixed.scene_box);
+    // the up axis keeps its extent
+    assert!((0..3).any(|a| (hi[a] - lo[a] - (fhi[a] - flo[a])).abs() < 1e-6));
+    assert!(whole.parameters > fixed.parameters);
+
+    let part = dir.path().join("part");
+    let mut o = options(data.clone(), part.clone(), cfg.clone());
+    o.checkpoint_every = 7;
+    o.stop_after = Some(23);
+    run_map(&o).unwrap();
+    let resumed = dir.path().join("resumed");
+    let mut o = options(data.clone(), resumed.clone(), cfg.clone());
+    o.resume = Some(part.clone());
+    let s = run_map(&o).unwrap();
+    assert_eq!(s.scene_box, whole.scene_box);
+    let (_, a) = load_map(&dir.path().join("whole/map.safetensors")).unwrap();
+    let (_, b) = load_map(&resumed.join("map.safetensors")).unwrap();
+    assert_eq!(a.layout, b.layout);
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    for g in 0..himap_core::field::model::NUM_GROUPS {
+        assert_eq!(bits(&a.params[g]), bits(&b.params[g]), "group {g}");
+        assert_eq!(bits(&a.v[g]), bits(&b.v[g]), "group {g} moments");
+    }
+    assert_eq!(
+        s.mean_psnr.map(f64::to_bits),
+        whole.mean_psnr.map(f64::to_bits)
+    );
+}

@@ -4,6 +4,7 @@
 use himap::backend::ParallelCpuBackend;
 use himap::config::Config;
 use himap::dataset::{self, LoadOptions};
+use himap::grow::{grow_before_push, Growth};
 use himap::mapper_cli::{load_map, pack_image, run_map, start_map, MapOptions};
 use himap::synth::{write_synthetic, SynthOptions};
 use himap_core::mapper::Mapper;
@@ -138,6 +139,7 @@ fn map_command_equals_the_streaming_api() {
     let ds = dataset::open(&data, &LoadOptions::default()).unwrap();
     let k = ds.intrinsics();
     let mut started = None;
+    let (mut aabb, mut axes, mut grew) = (None, [0, 2], 0);
     let mut px = vec![PixelSample::default(); cfg.mapper.pixels as usize];
     let mut res = vec![PixelResult::default(); cfg.mapper.pixels as usize];
     let mc = cfg.mapper_config().unwrap();
@@ -154,10 +156,21 @@ fn map_command_equals_the_streaming_api() {
                     slots: mc.slots_needed(),
                 });
             started = Some(Mapper::new(be, mc, k, &mut px, &mut res).unwrap());
+            aabb = Some(s.aabb);
+            axes = himap::grow::horizontal_axes(&frame.pose);
         }
         let m = started.as_mut().unwrap();
+        // the default box grows as `himap map`'s does, before the frame is pushed
+        let b = aabb.as_mut().unwrap();
+        if let Growth::Grown { aabb: g, .. } =
+            grow_before_push(&cfg, m, b, &axes, &frame.pose).unwrap()
+        {
+            *b = g;
+            grew += 1;
+        }
         m.push_frame(&pack_image(&frame.rgb), frame.pose).unwrap();
     }
+    assert!(grew > 0, "the walk should grow the 6 m box");
     let mut m = started.unwrap();
     m.flush(&mut |_| {}).unwrap();
     let d = m.into_backend().into_data();

@@ -141,6 +141,58 @@ fn throughput() {
     );
 }
 
+/// `himap map` of `frames` frames of a 32 x 24 synthetic room (seed 2) in `dir`, on the CPU
+/// and on Vulkan (`--profile` there: steps timed one by one instead of queued, the same
+/// bits): each run's summary, `metrics.csv` rows without their timings, and saved map.
+/// `default_box` removes the room's `scene.json` (the box is then the default one around the
+/// first camera).
+fn map_on_cpu_and_vulkan(
+    dir: &std::path::Path,
+    frames: usize,
+    default_box: bool,
+    cfg: &himap::config::Config,
+) -> [(
+    himap::mapper_cli::MapSummary,
+    Vec<String>,
+    himap::backend::ModelData,
+); 2] {
+    let data = dir.join("room");
+    himap::synth::write_synthetic(
+        &data,
+        &himap::synth::SynthOptions {
+            frames,
+            width: 32,
+            height: 24,
+            seed: 2,
+        },
+    )
+    .unwrap();
+    if default_box {
+        std::fs::remove_file(data.join("scene.json")).unwrap();
+    }
+    ["cpu", "vulkan"].map(|backend| {
+        let opts = himap::mapper_cli::MapOptions {
+            backend: backend.into(),
+            profile: backend == "vulkan",
+            ..himap::mapper_cli::MapOptions::new(data.clone(), dir.join(backend), cfg.clone(), 2)
+        };
+        let s = himap::mapper_cli::run_map(&opts).unwrap();
+        let csv = std::fs::read_to_string(opts.out.join("metrics.csv")).unwrap();
+        // frame, kind, psnr, ssim, depth, loss_first, loss, colour, warp (drop timings)
+        let rows: Vec<String> = csv
+            .lines()
+            .map(|l| l.split(',').take(10).collect::<Vec<_>>().join(","))
+            .collect();
+        let (_, map) = himap::mapper_cli::load_map(&opts.out.join("map.safetensors")).unwrap();
+        assert!(
+            backend == "cpu" || s.backend.starts_with("vulkan"),
+            "{}",
+            s.backend
+        );
+        (s, rows, map)
+    })
+}
+
 /// End to end: `himap map` (the mapper's initialisation and an online update, evaluation,
 /// mesh and saved map) on `--backend vulkan` writes the same per-update losses and the same
 /// map, bit for bit, as on `--backend cpu`.
@@ -151,17 +203,6 @@ fn map_command_on_vulkan_equals_cpu() {
         return;
     }
     let dir = std::env::temp_dir().join(format!("himap-e2e-{}", std::process::id()));
-    let data = dir.join("room");
-    himap::synth::write_synthetic(
-        &data,
-        &himap::synth::SynthOptions {
-            frames: 17,
-            width: 32,
-            height: 24,
-            seed: 2,
-        },
-    )
-    .unwrap();
     let mut cfg = himap::config::Config::small();
     cfg.model.samples = 12;
     cfg.mapper.init_iters = 12;
@@ -183,26 +224,7 @@ fn map_command_on_vulkan_equals_cpu() {
     cfg.mapper.refine_window = 4;
     cfg.eval.mesh_resolution = 0.3;
     cfg.eval.mesh_samples = 500;
-    let run = |backend: &str| {
-        let opts = himap::mapper_cli::MapOptions {
-            backend: backend.into(),
-            // `--profile` on the GPU: steps timed one by one instead of queued, same bits
-            profile: backend == "vulkan",
-            ..himap::mapper_cli::MapOptions::new(data.clone(), dir.join(backend), cfg.clone(), 2)
-        };
-        let s = himap::mapper_cli::run_map(&opts).unwrap();
-        let csv = std::fs::read_to_string(opts.out.join("metrics.csv")).unwrap();
-        // frame, kind, psnr, ssim, depth, loss_first, loss, colour, warp (drop timings)
-        let rows: Vec<String> = csv
-            .lines()
-            .map(|l| l.split(',').take(10).collect::<Vec<_>>().join(","))
-            .collect();
-        let (_, map) = himap::mapper_cli::load_map(&opts.out.join("map.safetensors")).unwrap();
-        (s, rows, map)
-    };
-    let (sc, rc, mc) = run("cpu");
-    let (sg, rg, mg) = run("vulkan");
-    assert!(sg.backend.starts_with("vulkan"), "{}", sg.backend);
+    let [(sc, rc, mc), (sg, rg, mg)] = map_on_cpu_and_vulkan(&dir, 17, false, &cfg);
     // init at frame 5, online at 10 and 15, the final update with frame 16
     assert_eq!(sc.updates, 4);
     assert_eq!(sc.iterations, 12 + 3 * 2 + 7);
@@ -600,4 +622,59 @@ fn the_kernels_division_equals_the_cpus() {
     };
     let want: Vec<f32> = a.iter().zip(&b).map(|(x, y)| x / y).collect();
     assert_same_f32("quotients", &want, &q);
+}
+
+/// `scene.grow` on the GPU: a default box around a camera circling a room grows before
+/// frames are pushed (the map resampled on the host, the backend rebuilt on the same device
+/// with its image slots), and `himap map` on `--backend vulkan` writes the same metrics and
+/// map, bit for bit, as on `--backend cpu`, over the same grown box.
+#[test]
+fn map_command_grows_the_box_on_vulkan_as_on_cpu() {
+    let probe = setup(RenderMode::SdfDensity, 1, 0).0;
+    if vulkan_or_skip(&probe, test_adam()).is_none() {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("himap-e2e-grow-{}", std::process::id()));
+    // no metadata box: the default one around the first camera, small enough to grow
+    let mut cfg = himap::config::Config::small();
+    cfg.scene.default_horizontal = 1.0;
+    cfg.scene.grow_margin = 0.8;
+    cfg.scene.grow_step = 0.5;
+    cfg.model.samples = 12;
+    cfg.mapper.init_iters = 8;
+    cfg.mapper.init_color_iters = 4;
+    cfg.mapper.depth_prior_iters = 4;
+    // a 6-frame window: llvmpipe's loop budget (see map_command_on_vulkan_equals_cpu)
+    cfg.mapper.init_frames = 4;
+    cfg.mapper.local_frames = 4;
+    cfg.mapper.window_keyframes = 2;
+    cfg.mapper.update_every = 2;
+    cfg.mapper.iters = 2;
+    cfg.mapper.pixels = 64;
+    cfg.mapper.refine_iters = 0;
+    cfg.eval.every = 2;
+    cfg.eval.final_every = 0;
+    cfg.eval.mesh_resolution = 0.3;
+    cfg.eval.mesh_samples = 300;
+    let [(sc, rc, mc), (sg, rg, mg)] = map_on_cpu_and_vulkan(&dir, 12, true, &cfg);
+    let e = |s: &himap::mapper_cli::MapSummary| {
+        [0, 1, 2].map(|a| s.scene_box[1][a] - s.scene_box[0][a])
+    };
+    assert!(
+        e(&sc)[0] > 1.4 || e(&sc)[1] > 1.4 || e(&sc)[2] > 1.4,
+        "{:?}",
+        sc.scene_box
+    );
+    assert_eq!(sc.scene_box, sg.scene_box);
+    assert_eq!(sc.frames_outside_box, 0);
+    assert_eq!(sg.frames_outside_box, 0);
+    assert_eq!((sc.updates, sc.iterations), (sg.updates, sg.iterations));
+    assert_eq!(rc, rg, "metrics.csv differs");
+    assert_eq!(mc.layout, mg.layout);
+    for g in Group::ALL {
+        let i = g as usize;
+        assert_same_f32(&format!("map {}", g.name()), &mc.params[i], &mg.params[i]);
+        assert_same_f32(&format!("moments {}", g.name()), &mc.v[i], &mg.v[i]);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }

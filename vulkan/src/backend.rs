@@ -537,6 +537,33 @@ impl VulkanBackend {
         Ok(())
     }
 
+    /// A backend like this one over another layout (a grown scene box): the same device
+    /// (opened again), learning rates, backward structure, profiling, image slots and their
+    /// contents, with `params` uploaded and the Adam moments and step at zero (import them
+    /// next). Built with the default [`VulkanOptions`] otherwise.
+    pub fn regrown(
+        &mut self,
+        layout: ModelLayout,
+        params: [&[f32]; NUM_GROUPS],
+    ) -> Result<Self, VulkanError> {
+        self.settle()?;
+        let options = VulkanOptions {
+            backward: self.backward.chosen,
+            ..VulkanOptions::default()
+        };
+        let mut new =
+            Self::with_options(layout, params, self.adam, options)?.with_images(self.store)?;
+        for slot in 0..self.store.slots {
+            let words = self.store.slot_range(slot, self.store.slot_len())?;
+            let img = self.host_images[words].to_vec();
+            Backend::upload_frame(&mut new, slot, &img)?;
+        }
+        if self.profiling {
+            new.enable_profiling()?;
+        }
+        Ok(new)
+    }
+
     /// Sets the count of Adam steps taken (a resumed run).
     pub fn set_steps(&mut self, t: u32) -> Result<(), VulkanError> {
         self.settle()?;

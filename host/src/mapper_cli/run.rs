@@ -26,7 +26,7 @@ where
 {
     let cfg = &opts.config;
     let (n, k) = (ds.len(), ctx.k);
-    let run = RunInfo {
+    let mut run = RunInfo {
         backend_name: format!("{} ({})", backend.name(), ctx.reason),
         threads: backend.threads(),
         parameters: backend.layout().param_count(),
@@ -49,10 +49,13 @@ where
         None => None,
     };
     let mut mapper = start_mapper(opts, ds, backend, mcfg, k, &mut px, &mut res, &resumed)?;
+    // a resumed run's map may have grown
+    run.ctx.aabb = mapper.backend().layout().config.aabb;
+    run.parameters = mapper.backend().layout().param_count();
     let mut rec = UpdateRecorder::new(opts, k, &mcfg, n, resumed.as_ref().map(|(r, _)| r))?;
     let progress = Progress::new(opts, n);
     let start = resumed.as_ref().map_or(0, |(r, _)| r.pushed as usize);
-    let poses = push_frames(opts, ds, &run, start, &mut mapper, &mut rec, &progress)?;
+    let poses = push_frames(opts, ds, &mut run, start, &mut mapper, &mut rec, &progress)?;
     progress.pb.finish_and_clear();
     if opts.profile {
         match mapper
@@ -115,7 +118,7 @@ struct StepCounts {
 fn push_frames<B: MapBackend>(
     opts: &MapOptions,
     ds: &dyn crate::dataset::Dataset,
-    run: &RunInfo,
+    run: &mut RunInfo,
     start: usize,
     mapper: &mut Mapper<'_, B>,
     rec: &mut UpdateRecorder<'_>,
@@ -133,9 +136,13 @@ where
     // Frames pushed at the last checkpoint this run wrote (named when the backend fails).
     let mut last_checkpoint: Option<usize> = None;
     let mut last_frame: Option<crate::dataset::Frame> = None;
-    let fail = |e, at: &str, last_checkpoint| {
-        mid_run_error(e, at, &run.backend_name, last_checkpoint, opts)
-    };
+    let backend_name = run.backend_name.clone();
+    let fail =
+        |e, at: &str, last_checkpoint| mid_run_error(e, at, &backend_name, last_checkpoint, opts);
+    let cfg = &opts.config;
+    let mut grow = (cfg.scene.grow && run.ctx.box_src == crate::config::DEFAULT_BOX && n > 0)
+        .then(|| anyhow::Ok(crate::grow::horizontal_axes(&ds.frame(0)?.pose)))
+        .transpose()?;
     let pushed = opts.stop_after.map_or(n, |s| s.min(n));
     if start == n && n > 0 {
         // A checkpoint written at the last frame: the final update and the refinement (whose
@@ -145,6 +152,11 @@ where
     for i in start..pushed {
         let frame = ds.frame(i)?;
         poses.push(frame.pose);
+        if let Some(axes) = grow {
+            if !grow_box(opts, run, mapper, &frame, &axes, progress)? {
+                grow = None;
+            }
+        }
         if !inside(&run.ctx.aabb, frame.pose.origin()) {
             if rec.outside_box == 0 {
                 progress.warn(&outside_box_warning(&frame, &run.ctx));
@@ -393,7 +405,12 @@ where
         return Mapper::new(backend, mcfg, k, px, res).map_err(|e| anyhow::anyhow!("mapper: {e}"));
     };
     let mut backend = backend;
-    backend.import(data)?;
+    if data.layout == *backend.layout() {
+        backend.import(data)?;
+    } else if !backend.regrow(data.clone())? {
+        // a map over a grown box: `regrow` installs it whole (parameters, moments, step)
+        bail!("the checkpoint's scene box grew, and this backend cannot resize its map: resume on the CPU");
+    }
     for (g, lr) in Group::ALL.into_iter().zip(run.lrs()?) {
         backend.set_adam_lr(g, lr)?;
     }
@@ -415,6 +432,57 @@ where
         );
     }
     Ok(m)
+}
+
+/// Grows the default scene box before `frame` is pushed ([`crate::grow::grow_before_push`])
+/// and says so. `Ok(false)` when the box can grow no more (said once; the run goes on in the
+/// box it has).
+fn grow_box<B: MapBackend>(
+    opts: &MapOptions,
+    run: &mut RunInfo,
+    mapper: &mut Mapper<'_, B>,
+    frame: &crate::dataset::Frame,
+    axes: &[usize; 2],
+    progress: &Progress,
+) -> anyhow::Result<bool>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    use crate::grow::Growth;
+    let t0 = Instant::now();
+    match crate::grow::grow_before_push(&opts.config, mapper, &run.ctx.aabb, axes, &frame.pose)? {
+        Growth::Same => Ok(true),
+        Growth::Refused(why) => {
+            progress.warn(&format!("warning: frame {}: {why}", frame.index));
+            Ok(false)
+        }
+        Growth::Grown {
+            aabb: b,
+            parameters,
+            bytes,
+        } => {
+            let e = b.extent();
+            progress.warn(&format!(
+                "frame {}: the scene box grows to [{:.2}, {:.2}, {:.2}]..[{:.2}, {:.2}, {:.2}] \
+                 ({:.1} x {:.1} x {:.1} m, {parameters} parameters, {:.0} MB) in {:.1} s",
+                frame.index,
+                b.min[0],
+                b.min[1],
+                b.min[2],
+                b.max[0],
+                b.max[1],
+                b.max[2],
+                e[0],
+                e[1],
+                e[2],
+                bytes as f64 / 1e6,
+                t0.elapsed().as_secs_f64()
+            ));
+            run.ctx.aabb = b;
+            run.parameters = parameters;
+            Ok(true)
+        }
+    }
 }
 
 /// Whether the point is inside the box (false for NaN).
