@@ -9,7 +9,7 @@
 
 use std::sync::{Mutex, MutexGuard};
 
-use himap_core::field::mlp::{MlpScratch, MAX_WIDTH};
+use himap_core::field::mlp::{MlpLanes, MlpLayout, MlpScratch, LANES, MAX_OUT, MAX_WIDTH};
 use himap_core::field::model::{
     color_at_transposed, grid_tape_len, sdf_at_transposed, Group, LossConfig, ModelGradSink,
     ModelLayout, Params, PerGroup, Ray, RayCache, RayResult, RowHint, SampleScratch, StoredTape,
@@ -289,6 +289,8 @@ struct Worker {
     scratch: Box<SampleScratch>,
     tape_geometry: Vec<MlpScratch>,
     tape_appearance: Vec<MlpScratch>,
+    /// The decoders' lanes ([`StoredTape::lanes`]): a ray's samples go through them 8 at a time.
+    lanes: Box<[MlpLanes; 2]>,
     /// The grids' backward factor rows, reused from sample to sample.
     grid_rows: Box<std::cell::RefCell<[[f32; MAX_WIDTH]; 6]>>,
     /// The grids' term factors of every sample of a ray ([`StoredTape::grid_kept`]).
@@ -304,6 +306,7 @@ impl Worker {
             scratch: Box::new(SampleScratch::new()),
             tape_geometry: vec![MlpScratch::new(); MAX_SAMPLES],
             tape_appearance: vec![MlpScratch::new(); MAX_SAMPLES],
+            lanes: Box::new([MlpLanes::new(), MlpLanes::new()]),
             grid_rows: Box::new(std::cell::RefCell::new([[0.0; MAX_WIDTH]; 6])),
             grid_kept: vec![0.0; MAX_SAMPLES * kept_per_sample],
         }
@@ -329,6 +332,7 @@ impl Worker {
             grid_rows: &self.grid_rows,
             grid_kept: &mut self.grid_kept,
             hint: std::marker::PhantomData,
+            lanes: Some(&mut self.lanes),
         };
         let mut sink = WorkerSink {
             grads: &mut self.grads,
@@ -425,6 +429,16 @@ impl RowHint for HostRows {
     #[inline(always)]
     fn prefetch(row: &[f32]) {
         prefetch_rows(row);
+    }
+
+    #[inline(always)]
+    fn mlp_forward_lanes(
+        layout: &MlpLayout,
+        wt: &[f32],
+        lanes: &mut MlpLanes,
+        out: &mut [[f32; LANES]; MAX_OUT],
+    ) {
+        crate::lanes::mlp_forward_lanes(layout, wt, lanes, out);
     }
 }
 

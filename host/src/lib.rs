@@ -16,6 +16,7 @@ pub mod config;
 pub mod dump;
 pub mod geo_init;
 pub mod grow;
+pub mod lanes;
 pub mod mapper_cli;
 pub mod query;
 pub mod select;

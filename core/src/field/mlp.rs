@@ -339,53 +339,195 @@ pub fn mlp_forward_transposed(
         return mlp_forward(layout, wt, input, scratch, out);
     }
     scratch.act[0][..n_in].copy_from_slice(&input[..n_in]);
+    // Hidden layers: each writes its ReLU'd units straight into the next activation row (no
+    // accumulator array to clear and copy per layer: the stores it cost sat on the path).
     let mut k = 0usize;
-    while k <= layers {
+    while k < layers {
         let fan_in = if k == 0 { n_in } else { hidden };
-        let fan_out = if k == layers { n_out } else { hidden };
         let w_off = layout.weight_offsets[k] as usize;
         let b_off = layout.bias_offsets[k] as usize;
-        let mut acc = [0.0f32; MAX_WIDTH];
-        let x = &scratch.act[k];
-        // Fixed-size accumulators the compiler keeps in registers: the decoders' width
-        // (paper and presets) and their output layers (1 SDF, 3 colours, ...). The generic
-        // loop keeps `acc` in memory, where each add waits for the previous one's store.
-        if fan_out == 32 {
-            let a = layer_transposed::<32>(wt, w_off, b_off, &x[..fan_in]);
-            acc[..32].copy_from_slice(&a);
-        } else if fan_out == 1 {
-            acc[0] = layer_transposed::<1>(wt, w_off, b_off, &x[..fan_in])[0];
-        } else if fan_out == 3 {
-            let a = layer_transposed::<3>(wt, w_off, b_off, &x[..fan_in]);
-            acc[..3].copy_from_slice(&a);
-        } else if fan_out == 4 {
-            let a = layer_transposed::<4>(wt, w_off, b_off, &x[..fan_in]);
-            acc[..4].copy_from_slice(&a);
+        let (prev, next) = scratch.act.split_at_mut(k + 1);
+        // The first layer reads the caller's input (the same values as `act[0]`).
+        let x = if k == 0 {
+            &input[..fan_in]
         } else {
-            acc[..fan_out].copy_from_slice(&wt[b_off..b_off + fan_out]);
-            for (i, &xi) in x[..fan_in].iter().enumerate() {
-                let col = &wt[w_off + i * fan_out..w_off + (i + 1) * fan_out];
-                for (a, &w) in acc[..fan_out].iter_mut().zip(col) {
+            &prev[k][..fan_in]
+        };
+        let dst = &mut next[0][..hidden];
+        if hidden == 32 {
+            // Fixed-size accumulators the compiler keeps in registers (the decoders' width).
+            let a = layer_transposed::<32>(wt, w_off, b_off, x);
+            for (d, v) in dst.iter_mut().zip(a) {
+                *d = relu(v);
+            }
+        } else {
+            dst.copy_from_slice(&wt[b_off..b_off + hidden]);
+            for (i, &xi) in x.iter().enumerate() {
+                let col = &wt[w_off + i * hidden..w_off + (i + 1) * hidden];
+                for (a, &w) in dst.iter_mut().zip(col) {
                     *a += w * xi;
                 }
             }
-        }
-        if k < layers {
-            for (dst, &v) in scratch.act[k + 1][..fan_out]
-                .iter_mut()
-                .zip(&acc[..fan_out])
-            {
-                *dst = relu(v);
-            }
-        } else {
-            let mut o = 0;
-            while o < MAX_OUT {
-                out[o] = if o < fan_out { acc[o] } else { 0.0 };
-                o += 1;
+            for d in dst.iter_mut() {
+                *d = relu(*d);
             }
         }
         k += 1;
     }
+    // Output layer (linear), its few units in registers.
+    let fan_in = if layers == 0 { n_in } else { hidden };
+    let w_off = layout.weight_offsets[layers] as usize;
+    let b_off = layout.bias_offsets[layers] as usize;
+    let x = if layers == 0 {
+        &input[..fan_in]
+    } else {
+        &scratch.act[layers][..fan_in]
+    };
+    let mut acc = [0.0f32; MAX_OUT];
+    match n_out {
+        1 => acc[0] = layer_transposed::<1>(wt, w_off, b_off, x)[0],
+        3 => acc[..3].copy_from_slice(&layer_transposed::<3>(wt, w_off, b_off, x)),
+        4 => acc = layer_transposed::<4>(wt, w_off, b_off, x),
+        _ => {
+            acc[..n_out].copy_from_slice(&wt[b_off..b_off + n_out]);
+            for (i, &xi) in x.iter().enumerate() {
+                let col = &wt[w_off + i * n_out..w_off + (i + 1) * n_out];
+                for (a, &w) in acc[..n_out].iter_mut().zip(col) {
+                    *a += w * xi;
+                }
+            }
+        }
+    }
+    *out = acc;
+}
+
+/// Samples [`mlp_forward_lanes`] evaluates together, one per SIMD lane.
+pub const LANES: usize = 8;
+
+/// The activations of [`LANES`] samples side by side for [`mlp_forward_lanes`]: `act[k][j][l]`
+/// is unit `j` of layer `k` (`act[0]`: the input) of sample `l`. Host-side (20 KB).
+#[derive(Clone)]
+pub struct MlpLanes {
+    /// `act[0]`: the inputs; `act[k]`: the output of hidden layer `k` after the ReLU.
+    pub act: [[[f32; LANES]; MAX_WIDTH]; MAX_HIDDEN_LAYERS + 1],
+}
+
+impl MlpLanes {
+    /// All-zero lanes.
+    pub const fn new() -> Self {
+        Self {
+            act: [[[0.0; LANES]; MAX_WIDTH]; MAX_HIDDEN_LAYERS + 1],
+        }
+    }
+}
+
+impl Default for MlpLanes {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// [`mlp_forward_transposed`] of [`LANES`] samples at once, sample `l` in lane `l`: the inputs
+/// in `lanes.act[0][..n_in]`, the hidden activations written to `lanes.act[1..]`, output `o`
+/// of sample `l` to `out[o][l]` (outputs past `n_out` 0). Every lane performs a unit's sum
+/// `bias + w_0 x_0 + w_1 x_1 + ...` in input order, the operations of [`mlp_forward`], so each
+/// sample gets its own forward's bits (tested); the lanes only make the units' chains of adds
+/// independent (one sample's output unit is a chain of `hidden` dependent adds). Host-side.
+#[inline]
+pub fn mlp_forward_lanes(
+    layout: &MlpLayout,
+    wt: &[f32],
+    lanes: &mut MlpLanes,
+    out: &mut [[f32; LANES]; MAX_OUT],
+) {
+    let (n_in, hidden, layers, n_out) = clamped_dims(layout);
+    if wt.len() < layout.param_count as usize {
+        // A wrong buffer: sample by sample in the plain order rather than out of bounds.
+        let mut scratch = MlpScratch::new();
+        let mut x = [0.0f32; MAX_WIDTH];
+        for l in 0..LANES {
+            for (xi, a) in x[..n_in].iter_mut().zip(&lanes.act[0][..n_in]) {
+                *xi = a[l];
+            }
+            let mut o = [0.0f32; MAX_OUT];
+            mlp_forward(layout, wt, &x, &mut scratch, &mut o);
+            for k in 1..=layers {
+                for (a, &v) in lanes.act[k][..hidden].iter_mut().zip(&scratch.act[k]) {
+                    a[l] = v;
+                }
+            }
+            for (dst, v) in out.iter_mut().zip(o) {
+                dst[l] = v;
+            }
+        }
+        return;
+    }
+    let mut k = 0usize;
+    while k < layers {
+        let fan_in = if k == 0 { n_in } else { hidden };
+        let w_off = layout.weight_offsets[k] as usize;
+        let b_off = layout.bias_offsets[k] as usize;
+        let (prev, next) = lanes.act.split_at_mut(k + 1);
+        let x = &prev[k][..fan_in];
+        let dst = &mut next[0][..hidden];
+        let mut u = 0;
+        // Blocks of 8 units: 8 accumulators of LANES lanes stay in registers.
+        while u + 8 <= hidden {
+            let a = units_lanes::<8>(wt, w_off, b_off, hidden, u, x);
+            for (d, a) in dst[u..u + 8].iter_mut().zip(a) {
+                *d = a.map(relu);
+            }
+            u += 8;
+        }
+        while u < hidden {
+            let a = units_lanes::<1>(wt, w_off, b_off, hidden, u, x);
+            dst[u] = a[0].map(relu);
+            u += 1;
+        }
+        k += 1;
+    }
+    let fan_in = if layers == 0 { n_in } else { hidden };
+    let w_off = layout.weight_offsets[layers] as usize;
+    let b_off = layout.bias_offsets[layers] as usize;
+    let x = &lanes.act[layers][..fan_in];
+    *out = [[0.0; LANES]; MAX_OUT];
+    match n_out {
+        1 => out[0] = units_lanes::<1>(wt, w_off, b_off, 1, 0, x)[0],
+        2 => out[..2].copy_from_slice(&units_lanes::<2>(wt, w_off, b_off, 2, 0, x)),
+        3 => out[..3].copy_from_slice(&units_lanes::<3>(wt, w_off, b_off, 3, 0, x)),
+        _ => *out = units_lanes::<MAX_OUT>(wt, w_off, b_off, MAX_OUT, 0, x),
+    }
+}
+
+/// Units `u0..u0 + U` of a layer of `fan_out` units over transposed weights, for every lane:
+/// `bias_j + w_0j x_0 + w_1j x_1 + ...` in input order (the caller checked that the weights
+/// fit).
+#[inline(always)]
+fn units_lanes<const U: usize>(
+    wt: &[f32],
+    w_off: usize,
+    b_off: usize,
+    fan_out: usize,
+    u0: usize,
+    x: &[[f32; LANES]],
+) -> [[f32; LANES]; U] {
+    let mut acc = [[0.0f32; LANES]; U];
+    for (a, &b) in acc.iter_mut().zip(&wt[b_off + u0..b_off + u0 + U]) {
+        *a = [b; LANES];
+    }
+    let cols = &wt[w_off..w_off + x.len() * fan_out];
+    for (col, xi) in cols.chunks_exact(fan_out).zip(x) {
+        let w: &[f32; U] = match col[u0..].first_chunk() {
+            Some(w) => w,
+            None => return acc,
+        };
+        for (a, &wj) in acc.iter_mut().zip(w) {
+            for (al, &xl) in a.iter_mut().zip(xi) {
+                *al += wj * xl;
+            }
+        }
+    }
+    acc
 }
 
 /// One layer of `N` units over transposed weights: `bias_j + w_0j x_0 + w_1j x_1 + ...` in
@@ -539,6 +681,61 @@ mod tests {
                     let w = if k == 0 { n_in } else { hidden } as usize;
                     for i in 0..w {
                         assert_eq!(s1.act[k][i].to_bits(), s2.act[k][i].to_bits());
+                    }
+                }
+            }
+        }
+    }
+
+    /// The lanes' forward gives every lane the plain forward's bits: outputs and every
+    /// activation, for several shapes (incl. no hidden layer and widths not a multiple of 8).
+    #[test]
+    fn lanes_forward_is_bit_identical() {
+        let mut rng = crate::rng::SplitMix::new(12);
+        for &(n_in, hidden, layers, n_out) in &[
+            (12, 32, 2, 1),
+            (67, 32, 2, 3),
+            (35, 16, 2, 3),
+            (5, 0, 0, 2),
+            (9, 7, 3, 4),
+            (20, 12, 1, 1),
+        ] {
+            let l = MlpLayout::new(n_in, hidden, layers, n_out).unwrap();
+            let n = l.param_count as usize;
+            for trial in 0..20 {
+                let params: std::vec::Vec<f32> = (0..n).map(|_| (rng.unit() - 0.5) * 0.7).collect();
+                let mut wt = std::vec![0.0f32; n];
+                transpose_weights(&l, &params, &mut wt).unwrap();
+                let mut lanes = MlpLanes::new();
+                let mut xs = [[0.0f32; MAX_WIDTH]; LANES];
+                for (s, x) in xs.iter_mut().enumerate() {
+                    for (i, v) in x.iter_mut().take(n_in as usize).enumerate() {
+                        // some exact zeros and negative inputs, like ReLU outputs and features
+                        *v = if (s + i) % 5 == 0 {
+                            0.0
+                        } else {
+                            (rng.unit() - 0.5) * 3.0
+                        };
+                        lanes.act[0][i][s] = *v;
+                    }
+                }
+                let mut out = [[7.0f32; LANES]; MAX_OUT];
+                mlp_forward_lanes(&l, &wt, &mut lanes, &mut out);
+                for (s, x) in xs.iter().enumerate() {
+                    let mut sc = MlpScratch::new();
+                    let mut o = [0.0f32; MAX_OUT];
+                    mlp_forward(&l, &params[..], x, &mut sc, &mut o);
+                    for j in 0..MAX_OUT {
+                        assert_eq!(
+                            o[j].to_bits(),
+                            out[j][s].to_bits(),
+                            "trial {trial} lane {s}"
+                        );
+                    }
+                    for k in 1..=layers as usize {
+                        for j in 0..hidden as usize {
+                            assert_eq!(sc.act[k][j].to_bits(), lanes.act[k][j][s].to_bits());
+                        }
                     }
                 }
             }

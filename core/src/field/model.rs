@@ -13,6 +13,8 @@
 
 use crate::field::grid::{self, GridConfig, GridLayout, MAX_GRID_FEATURES};
 use crate::field::mlp::{self, MlpLayout, MlpScratch, MAX_OUT, MAX_WIDTH};
+#[cfg(not(target_arch = "spirv"))]
+use crate::field::mlp::{MlpLanes, LANES};
 use crate::field::render::{self, RayOutput, RenderMode, MAX_SAMPLES};
 use crate::math;
 use crate::{Aabb, Error, GradSink, ParamRead};
@@ -1048,6 +1050,59 @@ pub trait SampleTape {
         sink: &mut S,
     );
 
+    /// Whether [`SampleTape::forward_lanes`] evaluates samples side by side (the CPU's
+    /// lanes); a ray's forward then takes them [`LANES`] at a time. Host-side.
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn has_lanes(&self) -> bool {
+        false
+    }
+
+    /// [`SampleTape::forward`] of samples `i..i + k` at depths `ts[..k]`, `k = min(LANES,
+    /// ts.len())` (`ts` holds the depths of the ray's remaining samples, `ts[k]` the next
+    /// one's, for the cache hint): sample `i + l`'s signed distance and colour to `sdf[l]` and
+    /// `rgb[l]`, the same bits as one at a time (the default). Host-side.
+    #[cfg(not(target_arch = "spirv"))]
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn forward_lanes<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        ts: &[f32],
+        s: &mut SampleScratch,
+        sdf: &mut [f32; LANES],
+        rgb: &mut [[f32; 3]; LANES],
+    ) {
+        for (l, &t) in ts.iter().take(LANES).enumerate() {
+            if let Some(&next) = ts.get(l + 1) {
+                self.prefetch(layout, params, ray, next);
+            }
+            (sdf[l], rgb[l]) = self.forward(layout, params, ray, i + l, t, s);
+        }
+    }
+
+    /// [`SampleTape::forward_lanes`] for a render (nothing kept for a backward; by default
+    /// the same). Host-side.
+    #[cfg(not(target_arch = "spirv"))]
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn render_forward_lanes<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        ts: &[f32],
+        s: &mut SampleScratch,
+        sdf: &mut [f32; LANES],
+        rgb: &mut [[f32; 3]; LANES],
+    ) {
+        self.forward_lanes(layout, params, ray, i, ts, s, sdf, rgb);
+    }
+
     /// A cache hint: the forward of the sample at depth `t` comes next (nothing by default;
     /// no value changes).
     #[inline(always)]
@@ -1072,6 +1127,19 @@ pub trait RowHint {
     /// Asks for the start of `row` to be brought towards the cache.
     #[inline(always)]
     fn prefetch(_row: &[f32]) {}
+
+    /// [`mlp::mlp_forward_lanes`] (which it is by default): a CPU may run it with its own
+    /// vector instructions, every lane the same bits (tested where it does).
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn mlp_forward_lanes(
+        layout: &MlpLayout,
+        wt: &[f32],
+        lanes: &mut MlpLanes,
+        out: &mut [[f32; LANES]; MAX_OUT],
+    ) {
+        mlp::mlp_forward_lanes(layout, wt, lanes, out);
+    }
 }
 
 /// No cache hint.
@@ -1139,6 +1207,11 @@ pub struct StoredTape<'a, H: RowHint = NoHint> {
     pub grid_kept: &'a mut [f32],
     /// The cache hint ([`NoHint`] or the CPU's).
     pub hint: core::marker::PhantomData<H>,
+    /// Lanes for the geometry and the appearance decoder: with them a ray's forward evaluates
+    /// [`LANES`] samples side by side ([`mlp::mlp_forward_lanes`], the same bits), without
+    /// them one at a time. Host-side.
+    #[cfg(not(target_arch = "spirv"))]
+    pub lanes: Option<&'a mut [MlpLanes; 2]>,
 }
 
 /// Floats per sample of [`StoredTape::grid_kept`] for `layout`: two flags, then the term
@@ -1185,6 +1258,44 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
                 H::prefetch(row);
             }
         });
+    }
+
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn has_lanes(&self) -> bool {
+        self.lanes.is_some()
+    }
+
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn forward_lanes<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        ts: &[f32],
+        s: &mut SampleScratch,
+        sdf: &mut [f32; LANES],
+        rgb: &mut [[f32; 3]; LANES],
+    ) {
+        self.lanes_forward::<P, true>(layout, params, ray, i, ts, s, sdf, rgb);
+    }
+
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn render_forward_lanes<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        ts: &[f32],
+        s: &mut SampleScratch,
+        sdf: &mut [f32; LANES],
+        rgb: &mut [[f32; 3]; LANES],
+    ) {
+        self.lanes_forward::<P, false>(layout, params, ray, i, ts, s, sdf, rgb);
     }
 
     #[inline(always)]
@@ -1310,6 +1421,154 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
                 self.grid_rows,
                 kept(1, 2 + ng..n),
             );
+        }
+    }
+}
+
+#[cfg(not(target_arch = "spirv"))]
+impl<H: RowHint> StoredTape<'_, H> {
+    /// [`SampleTape::forward_lanes`] (`KEEP`: the training forward, which records every
+    /// sample's grid factors and decoder activations as [`SampleTape::forward`] does) and
+    /// [`SampleTape::render_forward_lanes`] (`!KEEP`: records nothing). The grids and the
+    /// decoders' inputs sample by sample (the functions of the one-sample forward), then both
+    /// decoders for all samples at once in lanes ([`mlp::mlp_forward_lanes`]): each sample's
+    /// bits. Samples the tape has no record for, or no lanes, go one at a time.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn lanes_forward<P: ParamRead + ?Sized, const KEEP: bool>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        i: usize,
+        ts: &[f32],
+        s: &mut SampleScratch,
+        sdf: &mut [f32; LANES],
+        rgb: &mut [[f32; 3]; LANES],
+    ) {
+        let k = ts.len().min(LANES);
+        let recorded = !KEEP || (i + k <= self.geometry.len() && i + k <= self.appearance.len());
+        let lanes = match self.lanes.take() {
+            Some(l) if recorded => l,
+            other => {
+                self.lanes = other;
+                for (l, &t) in ts.iter().take(LANES).enumerate() {
+                    if let Some(&next) = ts.get(l + 1) {
+                        self.prefetch(layout, params, ray, next);
+                    }
+                    (sdf[l], rgb[l]) = if KEEP {
+                        self.forward(layout, params, ray, i + l, t, s)
+                    } else {
+                        self.render_forward(layout, params, ray, i + l, t, s)
+                    };
+                }
+                return;
+            }
+        };
+        let [gl, al] = &mut *lanes;
+        let (gm, am) = (&layout.geometry_mlp, &layout.appearance_mlp);
+        let gn = (gm.n_in as usize).min(MAX_WIDTH);
+        let an = (am.n_in as usize).min(MAX_WIDTH);
+        for (l, &t) in ts.iter().take(LANES).enumerate() {
+            // The cache hint one sample ahead in a ray's first group; the later groups'
+            // samples were named during the previous group's decoders (below).
+            if i == 0 {
+                if let Some(&next) = ts.get(l + 1) {
+                    self.prefetch(layout, params, ray, next);
+                }
+            }
+            let p = point_on_ray(ray, t);
+            let (flags, kg, ka) = if KEEP {
+                match kept_record(layout, self.grid_kept, i + l) {
+                    Some((f, kg, ka)) => (Some(f), Some(kg), Some(ka)),
+                    None => (None, None, None),
+                }
+            } else {
+                (None, None, None)
+            };
+            let keep_g = grid_forward_keeping(
+                &layout.geometry_grid,
+                params.geometry_grid,
+                p,
+                &mut s.geo_feat,
+                kg,
+            );
+            geometry_input(layout, &s.geo_feat, &mut s.mlp_in);
+            for (a, &v) in gl.act[0][..gn].iter_mut().zip(&s.mlp_in[..gn]) {
+                a[l] = v;
+            }
+            if KEEP {
+                self.geometry[i + l].act[0][..gn].copy_from_slice(&s.mlp_in[..gn]);
+            }
+            let keep_a = grid_forward_keeping(
+                &layout.appearance_grid,
+                params.appearance_grid,
+                p,
+                &mut s.app_feat,
+                ka,
+            );
+            let pn = layout.config.aabb.normalize(p);
+            appearance_input(layout, pn, &s.app_feat, &mut s.mlp_in);
+            for (a, &v) in al.act[0][..an].iter_mut().zip(&s.mlp_in[..an]) {
+                a[l] = v;
+            }
+            if KEEP {
+                self.appearance[i + l].act[0][..an].copy_from_slice(&s.mlp_in[..an]);
+            }
+            if let Some(f) = flags {
+                f[0] = if keep_g { 1.0 } else { 0.0 };
+                f[1] = if keep_a { 1.0 } else { 0.0 };
+            }
+        }
+        // The next group's rows load while the decoders run: the appearance's finest level
+        // (as one sample ahead) and the geometry's two finest.
+        for &t in ts.iter().skip(k).take(LANES) {
+            self.prefetch(layout, params, ray, t);
+            if let (true, Some(sl)) = (H::ACTIVE, params.geometry_grid.as_slice()) {
+                let g = &layout.geometry_grid;
+                let p = point_on_ray(ray, t);
+                for lv in (g.levels as usize).saturating_sub(2)..g.levels as usize {
+                    grid::for_each_plane_row(g, lv, p, |o| {
+                        if let Some(row) = sl.get(o..) {
+                            H::prefetch(row);
+                        }
+                    });
+                }
+            }
+        }
+        let mut go = [[0.0f32; LANES]; MAX_OUT];
+        let mut ao = [[0.0f32; LANES]; MAX_OUT];
+        H::mlp_forward_lanes(gm, self.geometry_wt, gl, &mut go);
+        H::mlp_forward_lanes(am, self.appearance_wt, al, &mut ao);
+        for l in 0..k {
+            sdf[l] = go[0][l];
+            rgb[l] = [
+                math::sigmoid(ao[0][l]),
+                math::sigmoid(ao[1][l]),
+                math::sigmoid(ao[2][l]),
+            ];
+        }
+        if KEEP {
+            // The hidden activations into each sample's record, for the decoders' backward.
+            lanes_to_tape(gm, gl, &mut self.geometry[i..i + k]);
+            lanes_to_tape(am, al, &mut self.appearance[i..i + k]);
+        }
+        self.lanes = Some(lanes);
+    }
+}
+
+/// The hidden activations of lane `l` of `lanes` into `tape[l]` (sample by sample, what
+/// [`mlp::mlp_forward_transposed`] leaves in its scratch).
+#[cfg(not(target_arch = "spirv"))]
+#[inline(always)]
+fn lanes_to_tape(m: &MlpLayout, lanes: &MlpLanes, tape: &mut [MlpScratch]) {
+    let hidden = (m.hidden as usize).min(MAX_WIDTH);
+    let layers = (m.hidden_layers as usize).min(mlp::MAX_HIDDEN_LAYERS);
+    for (l, rec) in tape.iter_mut().enumerate() {
+        for (dst, src) in rec.act[1..=layers].iter_mut().zip(&lanes.act[1..=layers]) {
+            for (d, a) in dst[..hidden].iter_mut().zip(src) {
+                *d = a[l];
+            }
         }
     }
 }
@@ -1550,6 +1809,40 @@ fn ray_forward_with<P: ParamRead + ?Sized, T: SampleTape, const DEPTH_ONLY: bool
     // transmittance bits as `render_forward`; the GPU evaluates them all, which gives the
     // same rendering).
     let (mode, t_min) = (layout.config.render_mode, layout.config.min_transmittance);
+    #[cfg(not(target_arch = "spirv"))]
+    if !DEPTH_ONLY && tape.has_lanes() {
+        // [`LANES`] samples at a time: the same samples and bits; the compositing stops at
+        // the same sample, the rest of its group computed and dropped.
+        let (mut sdf, mut rgb) = ([0.0f32; LANES], [[0.0f32; 3]; LANES]);
+        let mut trans = 1.0f32;
+        let mut i = 0;
+        'ray: while i < n {
+            tape.forward_lanes(
+                layout,
+                params,
+                ray,
+                i,
+                &cache.t[i..n],
+                s,
+                &mut sdf,
+                &mut rgb,
+            );
+            for l in 0..(n - i).min(LANES) {
+                cache.sdf[i] = sdf[l];
+                cache.rgb[i] = rgb[l];
+                i += 1;
+                if t_min > 0.0 {
+                    trans *= render::transmittance_factor(mode, params.beta, sdf[l]);
+                    if trans < t_min {
+                        break 'ray;
+                    }
+                }
+            }
+        }
+        cache.n = i;
+        ray_composite(layout, params.beta, cache);
+        return;
+    }
     let mut trans = 1.0f32;
     let mut i = 0;
     while i < n {
@@ -1972,6 +2265,7 @@ mod tests {
         mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
         let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
         let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(layout)];
+        let mut lanes = [MlpLanes::new(), MlpLanes::new()];
         let mut tape = StoredTape {
             geometry: &mut geometry,
             appearance: &mut appearance,
@@ -1980,6 +2274,7 @@ mod tests {
             grid_rows: &rows,
             grid_kept: &mut kept,
             hint: core::marker::PhantomData::<NoHint>,
+            lanes: Some(&mut lanes),
         };
         let mut total = 0.0f64;
         for (i, r) in rays.iter().enumerate() {
@@ -2134,6 +2429,7 @@ mod tests {
                                     grid_rows: &rows,
                                     grid_kept: &mut kept,
                                     hint: core::marker::PhantomData::<NoHint>,
+                                    lanes: None,
                                 };
                                 ray_depth_forward_taped(
                                     &layout, &params, r, i as u32, 4, jitter, &mut d, &mut s,
@@ -2345,5 +2641,101 @@ mod tests {
         assert!(g.iter().all(|v| v.iter().all(|&x| x == 0.0)));
         // colour 0 against 0.5 in three channels, depth 0 against 1
         assert!((l - (1.5 + 1.0)).abs() < 1e-6, "{l}");
+    }
+
+    /// A ray's training forward and backward with the decoders in lanes give the one-sample
+    /// forms' bits: outputs, sample count, every sample's signed distance and colour, and
+    /// every gradient contribution (the same sums in the same order), for every render mode,
+    /// with and without early termination; renders likewise, and a tape too short for the
+    /// ray's samples falls back to one at a time.
+    #[test]
+    fn lanes_forward_equals_one_sample_at_a_time() {
+        let mut cut = 0;
+        for mode in [
+            RenderMode::SdfDensity,
+            RenderMode::Occupancy,
+            RenderMode::SdfDirect,
+        ] {
+            for t_min in [0.0, 0.3] {
+                let mut layout = small(mode, crate::field::grid::GridKind::Factorized);
+                layout.config.min_transmittance = t_min;
+                let p = init(&layout);
+                let params = params_of(&p);
+                let mut wt: [Vec<f32>; 2] = [vec![0.0; p[2].len()], vec![0.0; p[3].len()]];
+                mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
+                mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
+                let loss = fd_loss(24);
+                for (i, r) in rays(24).iter().enumerate() {
+                    let mut runs = Vec::new();
+                    // one at a time; lanes; lanes over a tape shorter than the ray
+                    for (with_lanes, tape_len) in
+                        [(false, MAX_SAMPLES), (true, MAX_SAMPLES), (true, 5)]
+                    {
+                        let mut geometry = vec![MlpScratch::new(); tape_len];
+                        let mut appearance = vec![MlpScratch::new(); tape_len];
+                        let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
+                        let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(&layout)];
+                        let mut lanes = [MlpLanes::new(), MlpLanes::new()];
+                        let mut tape = StoredTape {
+                            geometry: &mut geometry,
+                            appearance: &mut appearance,
+                            geometry_wt: &wt[0],
+                            appearance_wt: &wt[1],
+                            grid_rows: &rows,
+                            grid_kept: &mut kept,
+                            hint: core::marker::PhantomData::<NoHint>,
+                            lanes: if with_lanes { Some(&mut lanes) } else { None },
+                        };
+                        let mut sink = F64Sink {
+                            g: core::array::from_fn(|g| vec![0.0; p[g].len()]),
+                        };
+                        let (mut cache, mut s) = (RayCache::new(), SampleScratch::new());
+                        let res = ray_train(
+                            &layout, &params, r, i as u32, &loss, &mut cache, &mut s, &mut tape,
+                            &mut sink,
+                        );
+                        let mut render = RayCache::new();
+                        ray_forward_taped(
+                            &layout,
+                            &params,
+                            r,
+                            i as u32,
+                            3,
+                            false,
+                            &mut render,
+                            &mut s,
+                            &mut tape,
+                        );
+                        runs.push((res, cache, sink.g, render));
+                    }
+                    let (res0, c0, g0, r0) = &runs[0];
+                    cut += (c0.n < ray_span(&layout, r).2) as usize;
+                    for (k, (res, c, g, rr)) in runs.iter().enumerate().skip(1) {
+                        let what = format!("{mode:?} t_min {t_min} ray {i} run {k}");
+                        assert_eq!(res.loss.to_bits(), res0.loss.to_bits(), "{what}");
+                        assert_eq!(res.color.map(f32::to_bits), res0.color.map(f32::to_bits));
+                        assert_eq!(c.n, c0.n, "{what}");
+                        for j in 0..c0.n {
+                            assert_eq!(c.sdf[j].to_bits(), c0.sdf[j].to_bits(), "{what}");
+                            assert_eq!(c.rgb[j].map(f32::to_bits), c0.rgb[j].map(f32::to_bits));
+                        }
+                        for (a, b) in g.iter().zip(g0.iter()) {
+                            assert!(
+                                a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits()),
+                                "{what}: gradients"
+                            );
+                        }
+                        assert_eq!(rr.n, r0.n, "{what}");
+                        assert_eq!(
+                            rr.out.color.map(f32::to_bits),
+                            r0.out.color.map(f32::to_bits)
+                        );
+                        assert_eq!(rr.out.depth.to_bits(), r0.out.depth.to_bits(), "{what}");
+                    }
+                }
+            }
+        }
+        // (SdfDirect does not terminate early: the modes with a transmittance do)
+        assert!(cut > 0, "no ray terminated early");
     }
 }

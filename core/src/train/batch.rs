@@ -118,6 +118,29 @@ pub fn run_items<J: BatchJob, P: ParamRead + ?Sized, T: SampleTape, S: ModelGrad
 struct RenderTape<'t, T: SampleTape>(&'t mut T);
 
 impl<T: SampleTape> SampleTape for RenderTape<'_, T> {
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn has_lanes(&self) -> bool {
+        self.0.has_lanes()
+    }
+
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn forward_lanes<P: ParamRead + ?Sized>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        _i: usize,
+        ts: &[f32],
+        s: &mut SampleScratch,
+        sdf: &mut [f32; crate::field::mlp::LANES],
+        rgb: &mut [[f32; 3]; crate::field::mlp::LANES],
+    ) {
+        self.0
+            .render_forward_lanes(layout, params, ray, 0, ts, s, sdf, rgb);
+    }
+
     #[inline(always)]
     fn forward<P: ParamRead + ?Sized>(
         &mut self,
