@@ -295,10 +295,15 @@ struct Worker {
     grid_rows: Box<std::cell::RefCell<[[f32; MAX_WIDTH]; 6]>>,
     /// The grids' term factors of every sample of a ray ([`StoredTape::grid_kept`]).
     grid_kept: Vec<f32>,
+    /// Cache lines of one `i64` gradient row of the geometry and the appearance grid (its
+    /// channels, at least 2 lines: a short row may straddle two), which the backward's cache
+    /// hint names: the paper's 32 appearance channels span 4.
+    grad_row_lines: [usize; 2],
 }
 
 impl Worker {
-    fn new(lens: [usize; NUM_GROUPS], kept_per_sample: usize) -> Self {
+    fn new(lens: [usize; NUM_GROUPS], kept_per_sample: usize, layout: &ModelLayout) -> Self {
+        let lines = |channels: u32| (channels as usize * 8).div_ceil(64).clamp(2, 8);
         Self {
             grads: lens.map(|n| vec![0; n]),
             touched: lens.map(|n| vec![false; n.div_ceil(BLOCK)]),
@@ -309,6 +314,10 @@ impl Worker {
             lanes: Box::new([MlpLanes::new(), MlpLanes::new()]),
             grid_rows: Box::new(std::cell::RefCell::new([[0.0; MAX_WIDTH]; 6])),
             grid_kept: vec![0.0; MAX_SAMPLES * kept_per_sample],
+            grad_row_lines: [
+                lines(layout.geometry_grid.channels),
+                lines(layout.appearance_grid.channels),
+            ],
         }
     }
 
@@ -337,6 +346,7 @@ impl Worker {
         let mut sink = WorkerSink {
             grads: &mut self.grads,
             touched: &mut self.touched,
+            row_lines: self.grad_row_lines,
         };
         f(&mut self.cache, &mut self.scratch, &mut tape, &mut sink)
     }
@@ -347,6 +357,8 @@ impl Worker {
 struct WorkerSink<'a> {
     grads: &'a mut [Vec<i64>; NUM_GROUPS],
     touched: &'a mut [Vec<bool>; NUM_GROUPS],
+    /// Cache lines of one gradient row of each grid ([`Worker::grad_row_lines`]).
+    row_lines: [usize; 2],
 }
 
 impl ModelGradSink for WorkerSink<'_> {
@@ -354,8 +366,13 @@ impl ModelGradSink for WorkerSink<'_> {
 
     #[inline(always)]
     fn prefetch(&mut self, group: Group, offset: usize) {
+        let lines = match group {
+            Group::GeometryGrid => self.row_lines[0],
+            Group::AppearanceGrid => self.row_lines[1],
+            _ => 2,
+        };
         if let Some(row) = self.grads[group as usize].get(offset..) {
-            prefetch_rows(row);
+            prefetch_lines(row, lines);
         }
     }
 
@@ -417,10 +434,10 @@ impl SlotPixels for HostPixels<'_> {
     }
 }
 
-/// The CPU's [`RowHint`]: the next sample's rows of the appearance grid's finest level, two
-/// cache lines each (a row and, for 16 channels, its neighbour along x, the next corner).
-/// One sample ahead: side by side on the paper step (`scripts/ab_bench.sh`, one thread each),
-/// the forward runs about 10 % more samples per second (ARCHITECTURE.md).
+/// The CPU's [`RowHint`]: the rows the next samples' forward reads (two cache lines each,
+/// [`prefetch_rows`]; which rows: [`StoredTape`]), and the decoders' lanes in AVX
+/// ([`crate::lanes`]). Side by side on the paper step (`scripts/ab_bench.sh`, one thread
+/// each), the hint alone gave the forward about 10 % more samples per second (ARCHITECTURE.md).
 pub(crate) struct HostRows;
 
 impl RowHint for HostRows {
@@ -449,7 +466,8 @@ fn prefetch_line<T>(row: &[T]) {
     prefetch_lines(row, 1);
 }
 
-/// Asks the CPU to bring the first two cache lines of `row` towards its L1 cache.
+/// Asks the CPU to bring the first two cache lines of `row` towards its L1 cache (a row of up
+/// to 16 `f32` channels, which may straddle two lines, or the first half of 32 channels).
 #[inline(always)]
 fn prefetch_rows<T>(row: &[T]) {
     prefetch_lines(row, 2);
@@ -658,7 +676,7 @@ impl ParallelCpuBackend {
             live,
             live_stale: false,
             workers: (0..n)
-                .map(|_| Mutex::new(Worker::new(lens, grid_tape_len(&data.layout))))
+                .map(|_| Mutex::new(Worker::new(lens, grid_tape_len(&data.layout), &data.layout)))
                 .collect(),
             grads: lens.map(|n| vec![0; n]),
             data,

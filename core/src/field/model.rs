@@ -1124,7 +1124,7 @@ pub trait RowHint {
     /// Whether [`Self::prefetch`] does anything (tapes without a hint skip naming the rows).
     const ACTIVE: bool = false;
 
-    /// Asks for the start of `row` to be brought towards the cache.
+    /// Asks for `row` (one grid row: its channels) to be brought towards the cache.
     #[inline(always)]
     fn prefetch(_row: &[f32]) {}
 
@@ -1253,8 +1253,9 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
         };
         let g = &layout.appearance_grid;
         let finest = (g.levels as usize).saturating_sub(1);
+        let nc = g.channels as usize;
         grid::for_each_plane_row(g, finest, point_on_ray(ray, t), |o| {
-            if let Some(row) = sl.get(o..) {
+            if let Some(row) = sl.get(o..o + nc) {
                 H::prefetch(row);
             }
         });
@@ -1527,9 +1528,10 @@ impl<H: RowHint> StoredTape<'_, H> {
             if let (true, Some(sl)) = (H::ACTIVE, params.geometry_grid.as_slice()) {
                 let g = &layout.geometry_grid;
                 let p = point_on_ray(ray, t);
-                for lv in (g.levels as usize).saturating_sub(2)..g.levels as usize {
+                let nc = g.channels as usize;
+                for lv in (g.levels as usize).saturating_sub(GROUP_HINT_LEVELS)..g.levels as usize {
                     grid::for_each_plane_row(g, lv, p, |o| {
-                        if let Some(row) = sl.get(o..) {
+                        if let Some(row) = sl.get(o..o + nc) {
                             H::prefetch(row);
                         }
                     });
@@ -2021,6 +2023,11 @@ pub fn ray_composite_backward(
         d_beta,
     );
 }
+
+/// The geometry grid's finest levels whose rows a ray's next group of samples names to the
+/// cache while the decoders of the current group run ([`SampleTape::forward_lanes`]).
+#[cfg(not(target_arch = "spirv"))]
+const GROUP_HINT_LEVELS: usize = 2;
 
 /// The geometry grid's finest levels whose gradient rows the backward announces.
 const GEOMETRY_HINT_LEVELS: usize = 2;
