@@ -172,6 +172,33 @@ pub struct ModelData {
     pub t: u32,
 }
 
+/// Parameter buffers at least this large ask for 2 MB pages ([`huge_params`]).
+const HUGE_PARAMS_BYTES: usize = 4 << 20;
+
+/// A zeroed parameter buffer of `n` values. A large one (the grids' planes) asks Linux for
+/// transparent 2 MB pages before its first write (`madvise(MADV_HUGEPAGE)`; the allocation is
+/// fresh, untouched memory): the forward's rows are spread over a plane of many megabytes,
+/// where 4 KB pages make most row reads a TLB miss too. A hint: where the kernel gives none
+/// (THP `never`, other systems) the buffer is the same. The parameters are written in full
+/// at initialisation, so 2 MB pages hold no more memory than 4 KB ones would. (Sparsely
+/// touched buffers, the gradients and Adam's moments, keep 4 KB pages: ARCHITECTURE.md.)
+fn huge_params(n: usize) -> Vec<f32> {
+    let v = vec![0.0f32; n];
+    #[cfg(target_os = "linux")]
+    if std::mem::size_of_val(&v[..]) >= HUGE_PARAMS_BYTES {
+        const PAGE: usize = 4096;
+        let start = v.as_ptr() as usize;
+        let end = start + std::mem::size_of_val(&v[..]);
+        let first = start.div_ceil(PAGE) * PAGE;
+        // SAFETY: madvise on whole pages inside `v`'s allocation changes how the kernel backs
+        // them, not their contents (still zero, not yet touched); failure is harmless.
+        unsafe {
+            libc::madvise(first as *mut libc::c_void, end - first, libc::MADV_HUGEPAGE);
+        }
+    }
+    v
+}
+
 impl ModelData {
     /// Each group's parameters, in [`himap_core::field::model::Group::ALL`] order (what
     /// `VulkanBackend::new` takes).
@@ -186,7 +213,7 @@ impl ModelData {
     pub fn new(layout: ModelLayout, seed: u32) -> Result<Self, himap_core::Error> {
         const PART: usize = 1 << 16;
         let lens = PerGroup(layout.group_lens());
-        let mut params = lens.map(|n| vec![0.0; n]);
+        let mut params = lens.map(huge_params);
         for g in Group::ALL {
             if ModelLayout::is_grid(g) {
                 params[g]
