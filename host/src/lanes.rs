@@ -157,11 +157,21 @@ mod tests {
     use himap_core::field::mlp::{mlp_forward, transpose_weights, MlpScratch};
     use himap_core::rng::SplitMix;
 
-    /// Every lane of the host form gets the one-sample forward's bits: outputs and every
-    /// hidden activation, for the decoders' shapes and odd ones (no hidden layer, widths not a
-    /// multiple of 8), with exact zeros, negative zeros, NaN and infinite inputs among them.
+    /// Every lane of the host form and of the core's portable form gets the one-sample
+    /// forward's bits: outputs and every hidden activation, for the decoders' shapes and odd
+    /// ones (no hidden layer, widths not a multiple of 8), with exact zeros, negative zeros,
+    /// NaN and infinite inputs among them.
     #[test]
-    fn host_lanes_equal_the_one_sample_forward() {
+    fn lanes_equal_the_one_sample_forward() {
+        type Form = fn(&MlpLayout, &[f32], &mut MlpLanes, &mut [[f32; LANES]; MAX_OUT]);
+        for form in [mlp_forward_lanes as Form, mlp::mlp_forward_lanes as Form] {
+            lanes_equal_the_one_sample_forward_in(form);
+        }
+    }
+
+    fn lanes_equal_the_one_sample_forward_in(
+        form: fn(&MlpLayout, &[f32], &mut MlpLanes, &mut [[f32; LANES]; MAX_OUT]),
+    ) {
         let mut rng = SplitMix::new(21);
         for &(n_in, hidden, layers, n_out) in &[
             (12, 32, 2, 1),
@@ -192,7 +202,7 @@ mod tests {
                     }
                 }
                 let mut out = [[7.0f32; LANES]; MAX_OUT];
-                mlp_forward_lanes(&l, &wt, &mut lanes, &mut out);
+                form(&l, &wt, &mut lanes, &mut out);
                 for (s, x) in xs.iter().enumerate() {
                     let mut sc = MlpScratch::new();
                     let mut o = [0.0f32; MAX_OUT];
