@@ -245,11 +245,14 @@ pub struct SceneSection {
     pub memory_budget_mb: f64,
     /// Whether the default box grows as the camera walks ([`crate::grow`]):
     /// every horizontal face closer to a pushed camera than `grow_margin` (m; 0 = the rays'
-    /// reach, 1.25 `model.max_depth`) moves out by `grow_step` (m), within
+    /// reach, 1.25 `model.max_depth`) moves out by `grow_step` (m), and the bottom or top face
+    /// closer than `grow_margin_up` (m; 0 = never along "up") by `grow_step_up` (m), within
     /// `memory_budget_mb`. A box from the configuration or the dataset never grows.
     pub grow: bool,
     pub grow_margin: f32,
     pub grow_step: f32,
+    pub grow_margin_up: f32,
+    pub grow_step_up: f32,
 }
 
 /// Evaluation and outputs of `himap map`.
@@ -397,6 +400,8 @@ impl Config {
                 grow: true,
                 grow_margin: 0.0,
                 grow_step: 6.0,
+                grow_margin_up: 1.0,
+                grow_step_up: 2.0,
             },
             eval: EvalSection {
                 every: 1,
@@ -547,6 +552,12 @@ impl Config {
         }
         if !(s.grow_margin >= 0.0 && s.grow_margin.is_finite()) {
             bail!("scene.grow_margin must be >= 0 (0 = model.max_depth)");
+        }
+        if !(s.grow_step_up > 0.0 && s.grow_step_up.is_finite()) {
+            bail!("scene.grow_step_up must be positive");
+        }
+        if !(s.grow_margin_up >= 0.0 && s.grow_margin_up.is_finite()) {
+            bail!("scene.grow_margin_up must be >= 0 (0 = the box never grows along up)");
         }
         if !(self.eval.observed_margin >= 0.0 && self.eval.observed_margin.is_finite()) {
             bail!("eval.observed_margin must be >= 0");

@@ -5,7 +5,9 @@
 //! would leave the box, and whatever lies beyond could not be mapped. With `scene.grow` (on by
 //! default, for the default box only), before a frame is pushed its camera centre is checked:
 //! every horizontal face of the box closer to it than `scene.grow_margin` (0: the rays' reach,
-//! 1.25 `model.max_depth`) moves out by `scene.grow_step`, and the map is resampled onto the
+//! 1.25 `model.max_depth`) moves out by `scene.grow_step`, the bottom or top face closer than
+//! `scene.grow_margin_up` (1 m: a ramp, stairs, a drone) by `scene.grow_step_up`, and the map
+//! is resampled onto the
 //! larger box ([`regrid`]): each grid factor (plane or line) of every level is interpolated
 //! at the new vertices inside the old box (where the vertices coincide, which they do along
 //! axes that did not grow, the values are copied exactly), and initialised as a fresh map is
@@ -70,8 +72,8 @@ pub fn grow_before_push<B: MapBackend>(
     axes: &[usize; 2],
     pose: &Pose,
 ) -> anyhow::Result<Growth> {
-    let margin = grow_margin(cfg);
-    let Some(b) = grown_box(aabb, pose.origin(), axes, margin, cfg.scene.grow_step) else {
+    let (margin, up) = (grow_margin(cfg), cfg.scene.grow_margin_up);
+    let Some(b) = grown_default_box(cfg, aabb, axes, pose.origin()) else {
         return Ok(Growth::Same);
     };
     let threads = mapper.backend().threads();
@@ -79,7 +81,8 @@ pub fn grow_before_push<B: MapBackend>(
     let e = b.extent();
     if (state + grads) as f64 / 1e6 > cfg.scene.memory_budget_mb {
         return Ok(Growth::Refused(format!(
-            "the camera comes within {margin:.1} m of the scene box's edge, and the grown box \
+            "the camera comes within the growth margin of the scene box's edge \
+             (scene.grow_margin {margin:.1} m, scene.grow_margin_up {up:.1} m), and the grown box \
              ({:.1} x {:.1} x {:.1} m) would need {:.0} MB, over scene.memory_budget_mb = {:.0}",
             e[0],
             e[1],
@@ -93,7 +96,8 @@ pub fn grow_before_push<B: MapBackend>(
     drop(data);
     if !mapper.backend_mut().regrow(grown)? {
         return Ok(Growth::Refused(format!(
-            "the camera comes within {margin:.1} m of the scene box's edge, and this backend \
+            "the camera comes within the growth margin of the scene box's edge \
+             (scene.grow_margin {margin:.1} m, scene.grow_margin_up {up:.1} m), and this backend \
              cannot grow its map: give a box that holds the path (scene.min, scene.max) or map \
              on the CPU"
         )));
@@ -103,6 +107,26 @@ pub fn grow_before_push<B: MapBackend>(
         parameters,
         bytes: state + grads,
     })
+}
+
+/// The default box `aabb` grown for a camera at `c` ([`grown_box`]): across the horizontal
+/// `axes` with `scene.grow_margin` ([`grow_margin`]) and `scene.grow_step`, then along the
+/// remaining axis ("up") with `scene.grow_margin_up` and `scene.grow_step_up` (not at all when
+/// that margin is 0). `None` when no face moves.
+pub fn grown_default_box(
+    cfg: &Config,
+    aabb: &Aabb,
+    axes: &[usize; 2],
+    c: [f32; 3],
+) -> Option<Aabb> {
+    let s = &cfg.scene;
+    let across = grown_box(aabb, c, axes, grow_margin(cfg), s.grow_step);
+    let base = across.unwrap_or(*aabb);
+    let up = 3usize.saturating_sub(axes[0] + axes[1]).min(2);
+    let along = (s.grow_margin_up > 0.0 && up != axes[0] && up != axes[1])
+        .then(|| grown_box(&base, c, &[up], s.grow_margin_up, s.grow_step_up))
+        .flatten();
+    along.or(across)
 }
 
 /// The box grown so that the camera centre `c` keeps `margin` from every face across the
@@ -295,6 +319,37 @@ mod tests {
         assert_eq!((g.min, g.max), ([-12.0, -2.0, -12.0], [27.0, 3.0, 12.0]));
         assert_eq!(grown_box(&b, [f32::NAN, 0.0, 0.0], &[0, 2], 6.0, 6.0), None);
         assert_eq!(grown_box(&b, [11.0, 0.0, 0.0], &[0, 2], 6.0, 0.0), None);
+    }
+
+    /// The default box grows along "up" only when the camera comes within
+    /// `scene.grow_margin_up` of the bottom or top face (by `scene.grow_step_up`), across the
+    /// horizontal axes as before, and not along "up" when that margin is 0.
+    #[test]
+    fn the_default_box_grows_up_and_down_with_the_camera() {
+        let mut cfg = Config::preset("small").unwrap();
+        cfg.scene.grow_margin = 6.0;
+        let b = Aabb::new([-12.0, -2.0, -12.0], [12.0, 3.0, 12.0]);
+        let axes = [0, 2];
+        // a handheld camera's height changes (ICL: -0.12 .. +0.75 m) grow nothing
+        assert_eq!(grown_default_box(&cfg, &b, &axes, [0.0, 0.75, 0.0]), None);
+        assert_eq!(grown_default_box(&cfg, &b, &axes, [0.0, -0.9, 0.0]), None);
+        // up a flight of stairs: the top moves by whole 2 m steps until 1 m is kept
+        let g = grown_default_box(&cfg, &b, &axes, [0.0, 2.5, 0.0]).unwrap();
+        assert_eq!((g.min, g.max), ([-12.0, -2.0, -12.0], [12.0, 5.0, 12.0]));
+        let g = grown_default_box(&cfg, &b, &axes, [0.0, 4.5, 0.0]).unwrap();
+        assert_eq!(g.max[1], 7.0);
+        // down and sideways at once
+        let g = grown_default_box(&cfg, &b, &axes, [7.0, -1.5, 0.0]).unwrap();
+        assert_eq!((g.min, g.max), ([-12.0, -4.0, -12.0], [18.0, 3.0, 12.0]));
+        // another up axis (z up: the horizontal axes are x and y)
+        let bz = Aabb::new([-12.0, -12.0, -2.0], [12.0, 12.0, 3.0]);
+        let g = grown_default_box(&cfg, &bz, &[0, 1], [0.0, 0.0, 2.5]).unwrap();
+        assert_eq!(g.max, [12.0, 12.0, 5.0]);
+        // margin 0: never along up
+        cfg.scene.grow_margin_up = 0.0;
+        assert_eq!(grown_default_box(&cfg, &b, &axes, [0.0, 2.9, 0.0]), None);
+        let g = grown_default_box(&cfg, &b, &axes, [7.0, 2.9, 0.0]).unwrap();
+        assert_eq!(g.max, [18.0, 3.0, 12.0]);
     }
 
     #[test]

@@ -573,6 +573,49 @@ fn a_checkpoint_at_the_last_frame_resumes_into_the_refinement() {
     assert!(e.contains("another configuration"), "{e}");
 }
 
+/// `scene.grow_margin_up`: a default box whose bottom lies closer to the first camera than
+/// the margin grows downwards (by whole `grow_step_up`s) before the first frame, the other
+/// axes keep their extent, and the run maps in it with no camera outside.
+#[test]
+fn the_default_box_grows_along_up() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("room");
+    write_synthetic(
+        &data,
+        &SynthOptions {
+            frames: 6,
+            width: 64,
+            height: 48,
+            seed: 2,
+        },
+    )
+    .unwrap();
+    std::fs::remove_file(data.join("scene.json")).unwrap();
+    let mut cfg = tiny_config();
+    cfg.eval.final_every = 0;
+    cfg.scene.default_horizontal = 12.0;
+    cfg.scene.default_below = 0.3;
+    cfg.scene.grow_margin_up = 0.8;
+    cfg.scene.grow_step_up = 0.4;
+    let fixed = {
+        let mut c = cfg.clone();
+        c.scene.grow_margin_up = 0.0;
+        run_map(&options(data.clone(), dir.path().join("fixed"), c)).unwrap()
+    };
+    let s = run_map(&options(data.clone(), dir.path().join("up"), cfg)).unwrap();
+    assert_eq!(s.frames_outside_box, 0);
+    let ext = |b: &[[f32; 3]; 2], a: usize| b[1][a] - b[0][a];
+    let grown: Vec<usize> = (0..3)
+        .filter(|&a| (ext(&s.scene_box, a) - ext(&fixed.scene_box, a)).abs() > 1e-4)
+        .collect();
+    assert_eq!(grown.len(), 1, "{:?} vs {:?}", s.scene_box, fixed.scene_box);
+    let a = grown[0];
+    // 0.3 m below grows by two 0.4 m steps to keep 0.8 m
+    assert!((ext(&s.scene_box, a) - ext(&fixed.scene_box, a) - 0.8).abs() < 1e-4);
+    assert!(s.parameters > fixed.parameters);
+    assert!(s.mean_psnr.is_some_and(f64::is_finite));
+}
+
 /// `scene.grow`: the default box placed around the first camera grows as the camera walks
 /// (here a 1 m box around a camera circling the room), so no camera ends outside it; a run
 /// stopped after a checkpoint and resumed (its backend built for the first box, the
