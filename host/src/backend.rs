@@ -480,6 +480,11 @@ impl RowHint for HostRows {
     }
 
     #[inline(always)]
+    fn lanes_pay() -> bool {
+        crate::lanes::fast()
+    }
+
+    #[inline(always)]
     fn mlp_forward_lanes(
         layout: &MlpLayout,
         wt: &[f32],

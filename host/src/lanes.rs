@@ -5,9 +5,24 @@
 //! and add (no fused multiply-add), then the same ReLU, so every sample gets its one-sample
 //! forward's bits (tested).
 
-use himap_core::field::mlp::{
-    self, MlpLanes, MlpLayout, LANES, MAX_HIDDEN_LAYERS, MAX_OUT, MAX_WIDTH,
-};
+use himap_core::field::mlp::{self, MlpLanes, MlpLayout, LANES, MAX_OUT};
+#[cfg(any(target_arch = "x86_64", test))]
+use himap_core::field::mlp::{MAX_HIDDEN_LAYERS, MAX_WIDTH};
+
+/// Whether this CPU has the vector form ([`mlp_forward_lanes`] in AVX); elsewhere (other
+/// architectures, x86 without AVX) a ray's samples go one at a time, which is faster than
+/// the core's portable lanes.
+#[inline(always)]
+pub fn fast() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
 
 /// [`mlp::mlp_forward_lanes`] with AVX where the CPU has it, the core's form otherwise.
 #[inline(always)]
@@ -29,6 +44,7 @@ pub fn mlp_forward_lanes(
 
 /// The layer shapes `(n_in, hidden, hidden_layers, n_out)`, clamped to the capacities as the
 /// core clamps them.
+#[cfg(target_arch = "x86_64")]
 fn dims(layout: &MlpLayout) -> (usize, usize, usize, usize) {
     (
         (layout.n_in as usize).min(MAX_WIDTH),

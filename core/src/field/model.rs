@@ -1128,6 +1128,16 @@ pub trait RowHint {
     #[inline(always)]
     fn prefetch(_row: &[f32]) {}
 
+    /// Whether this CPU runs [`RowHint::mlp_forward_lanes`] fast enough for a ray's samples
+    /// to go through the decoders [`LANES`] at a time (false by default: the portable form
+    /// is correct but slower than one sample at a time, since compilers vectorise it across
+    /// the units; ARCHITECTURE.md).
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn lanes_pay() -> bool {
+        false
+    }
+
     /// [`mlp::mlp_forward_lanes`] (which it is by default): a CPU may run it with its own
     /// vector instructions, every lane the same bits (tested where it does).
     #[cfg(not(target_arch = "spirv"))]
@@ -1207,9 +1217,9 @@ pub struct StoredTape<'a, H: RowHint = NoHint> {
     pub grid_kept: &'a mut [f32],
     /// The cache hint ([`NoHint`] or the CPU's).
     pub hint: core::marker::PhantomData<H>,
-    /// Lanes for the geometry and the appearance decoder: with them a ray's forward evaluates
-    /// [`LANES`] samples side by side ([`mlp::mlp_forward_lanes`], the same bits), without
-    /// them one at a time. Host-side.
+    /// Lanes for the geometry and the appearance decoder: with them (and a hint whose
+    /// [`RowHint::lanes_pay`]) a ray's forward evaluates [`LANES`] samples side by side
+    /// ([`RowHint::mlp_forward_lanes`], the same bits), without them one at a time. Host-side.
     #[cfg(not(target_arch = "spirv"))]
     pub lanes: Option<&'a mut [MlpLanes; 2]>,
 }
@@ -1264,7 +1274,7 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
     #[cfg(not(target_arch = "spirv"))]
     #[inline(always)]
     fn has_lanes(&self) -> bool {
-        self.lanes.is_some()
+        self.lanes.is_some() && H::lanes_pay()
     }
 
     #[cfg(not(target_arch = "spirv"))]
@@ -2127,6 +2137,16 @@ mod tests {
     use std::vec;
     use std::vec::Vec;
 
+    /// A hint that names nothing and takes the core's portable lanes (the tests' way to run
+    /// a ray's samples through them).
+    struct PortableLanes;
+
+    impl RowHint for PortableLanes {
+        fn lanes_pay() -> bool {
+            true
+        }
+    }
+
     fn small(mode: RenderMode, kind: crate::field::grid::GridKind) -> ModelLayout {
         let mut geo = GridConfig::hi_map_geometry().with_kind(kind);
         geo.levels = 2;
@@ -2280,7 +2300,7 @@ mod tests {
             appearance_wt: &wt[1],
             grid_rows: &rows,
             grid_kept: &mut kept,
-            hint: core::marker::PhantomData::<NoHint>,
+            hint: core::marker::PhantomData::<PortableLanes>,
             lanes: Some(&mut lanes),
         };
         let mut total = 0.0f64;
@@ -2690,7 +2710,7 @@ mod tests {
                             appearance_wt: &wt[1],
                             grid_rows: &rows,
                             grid_kept: &mut kept,
-                            hint: core::marker::PhantomData::<NoHint>,
+                            hint: core::marker::PhantomData::<PortableLanes>,
                             lanes: if with_lanes { Some(&mut lanes) } else { None },
                         };
                         let mut sink = F64Sink {
