@@ -5,9 +5,9 @@
 //! and add (no fused multiply-add), then the same ReLU, so every sample gets its one-sample
 //! forward's bits (tested).
 
+#[cfg(test)]
+use himap_core::field::mlp::MAX_WIDTH;
 use himap_core::field::mlp::{self, MlpLanes, MlpLayout, LANES, MAX_OUT};
-#[cfg(any(target_arch = "x86_64", test))]
-use himap_core::field::mlp::{MAX_HIDDEN_LAYERS, MAX_WIDTH};
 
 /// Whether this CPU has the vector form ([`mlp_forward_lanes`] in AVX); elsewhere (other
 /// architectures, x86 without AVX) a ray's samples go one at a time, which is faster than
@@ -34,24 +34,12 @@ pub fn mlp_forward_lanes(
 ) {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::arch::is_x86_feature_detected!("avx") && wt.len() >= layout.param_count as usize {
-            // SAFETY: the CPU supports AVX (checked above).
+        if fast() && wt.len() >= layout.param_count as usize {
+            // SAFETY: the CPU supports AVX (`fast`).
             return unsafe { forward_avx(layout, wt, lanes, out) };
         }
     }
     mlp::mlp_forward_lanes(layout, wt, lanes, out)
-}
-
-/// The layer shapes `(n_in, hidden, hidden_layers, n_out)`, clamped to the capacities as the
-/// core clamps them.
-#[cfg(target_arch = "x86_64")]
-fn dims(layout: &MlpLayout) -> (usize, usize, usize, usize) {
-    (
-        (layout.n_in as usize).min(MAX_WIDTH),
-        (layout.hidden as usize).min(MAX_WIDTH),
-        (layout.hidden_layers as usize).min(MAX_HIDDEN_LAYERS),
-        (layout.n_out as usize).min(MAX_OUT),
-    )
 }
 
 /// The AVX form; the caller checked that `wt` holds the layout's parameters.
@@ -64,7 +52,7 @@ fn forward_avx(
     out: &mut [[f32; LANES]; MAX_OUT],
 ) {
     use std::arch::x86_64::*;
-    let (n_in, hidden, layers, n_out) = dims(layout);
+    let (n_in, hidden, layers, n_out) = layout.dims();
     // `relu` of the core: `x <= 0` (both zeros and negatives) gives +0, NaN passes.
     let relu = |x: __m256| _mm256_andnot_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(x, _mm256_setzero_ps()), x);
     for k in 0..layers {

@@ -573,24 +573,31 @@ fn a_checkpoint_at_the_last_frame_resumes_into_the_refinement() {
     assert!(e.contains("another configuration"), "{e}");
 }
 
+/// A small synthetic room of `frames` frames under `dir` without its `scene.json`: no
+/// metadata box, so mapping it places the default box around the first camera.
+fn room_without_box(dir: &std::path::Path, frames: usize, seed: u64) -> std::path::PathBuf {
+    let data = dir.join("room");
+    write_synthetic(
+        &data,
+        &SynthOptions {
+            frames,
+            width: 64,
+            height: 48,
+            seed,
+        },
+    )
+    .unwrap();
+    std::fs::remove_file(data.join("scene.json")).unwrap();
+    data
+}
+
 /// `scene.grow_margin_up`: a default box whose bottom lies closer to the first camera than
 /// the margin grows downwards (by whole `grow_step_up`s) before the first frame, the other
 /// axes keep their extent, and the run maps in it with no camera outside.
 #[test]
 fn the_default_box_grows_along_up() {
     let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("room");
-    write_synthetic(
-        &data,
-        &SynthOptions {
-            frames: 6,
-            width: 64,
-            height: 48,
-            seed: 2,
-        },
-    )
-    .unwrap();
-    std::fs::remove_file(data.join("scene.json")).unwrap();
+    let data = room_without_box(dir.path(), 6, 2);
     let mut cfg = tiny_config();
     cfg.eval.final_every = 0;
     cfg.scene.default_horizontal = 12.0;
@@ -623,19 +630,7 @@ fn the_default_box_grows_along_up() {
 #[test]
 fn the_default_box_grows_with_the_walk_and_resumes_bit_for_bit() {
     let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("room");
-    write_synthetic(
-        &data,
-        &SynthOptions {
-            frames: 30,
-            width: 64,
-            height: 48,
-            seed: 1,
-        },
-    )
-    .unwrap();
-    // no metadata box: the default one around the first camera
-    std::fs::remove_file(data.join("scene.json")).unwrap();
+    let data = room_without_box(dir.path(), 30, 1);
     let mut cfg = tiny_config();
     cfg.eval.final_every = 0;
     cfg.scene.default_horizontal = 1.0;

@@ -64,6 +64,13 @@ pub struct MlpLayout {
 }
 
 impl MlpLayout {
+    /// `(n_in, hidden, hidden_layers, n_out)` clamped to the fixed capacities, as every kernel
+    /// reads them (an invalid hand-made layout never indexes out of range).
+    #[inline(always)]
+    pub fn dims(&self) -> (usize, usize, usize, usize) {
+        clamped_dims(self)
+    }
+
     /// Builds the layout of an `n_in -> hidden x hidden_layers -> n_out` network.
     ///
     /// Errors: [`Error::InvalidConfig`] for a zero `n_in`, `n_out`, or `hidden` (when

@@ -1058,10 +1058,11 @@ pub trait SampleTape {
         false
     }
 
-    /// [`SampleTape::forward`] of samples `i..i + k` at depths `ts[..k]`, `k = min(LANES,
-    /// ts.len())` (`ts` holds the depths of the ray's remaining samples, `ts[k]` the next
-    /// one's, for the cache hint): sample `i + l`'s signed distance and colour to `sdf[l]` and
-    /// `rgb[l]`, the same bits as one at a time (the default). Host-side.
+    /// [`SampleTape::forward`] (`keep`; a render's [`SampleTape::render_forward`] otherwise)
+    /// of samples `i..i + k` at depths `ts[..k]`, `k = min(LANES, ts.len())` (`ts` holds the
+    /// depths of the ray's remaining samples, `ts[k]` the next one's, for the cache hint):
+    /// sample `i + l`'s signed distance and colour to `sdf[l]` and `rgb[l]`, the same bits as
+    /// one at a time (the default, [`forward_one_at_a_time`]). Host-side.
     #[cfg(not(target_arch = "spirv"))]
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
@@ -1072,35 +1073,12 @@ pub trait SampleTape {
         ray: &Ray,
         i: usize,
         ts: &[f32],
+        keep: bool,
         s: &mut SampleScratch,
         sdf: &mut [f32; LANES],
         rgb: &mut [[f32; 3]; LANES],
     ) {
-        for (l, &t) in ts.iter().take(LANES).enumerate() {
-            if let Some(&next) = ts.get(l + 1) {
-                self.prefetch(layout, params, ray, next);
-            }
-            (sdf[l], rgb[l]) = self.forward(layout, params, ray, i + l, t, s);
-        }
-    }
-
-    /// [`SampleTape::forward_lanes`] for a render (nothing kept for a backward; by default
-    /// the same). Host-side.
-    #[cfg(not(target_arch = "spirv"))]
-    #[allow(clippy::too_many_arguments)]
-    #[inline(always)]
-    fn render_forward_lanes<P: ParamRead + ?Sized>(
-        &mut self,
-        layout: &ModelLayout,
-        params: &Params<'_, P>,
-        ray: &Ray,
-        i: usize,
-        ts: &[f32],
-        s: &mut SampleScratch,
-        sdf: &mut [f32; LANES],
-        rgb: &mut [[f32; 3]; LANES],
-    ) {
-        self.forward_lanes(layout, params, ray, i, ts, s, sdf, rgb);
+        forward_one_at_a_time(self, layout, params, ray, i, ts, keep, s, sdf, rgb);
     }
 
     /// A cache hint: the forward of the sample at depth `t` comes next (nothing by default;
@@ -1113,6 +1091,35 @@ pub trait SampleTape {
         _ray: &Ray,
         _t: f32,
     ) {
+    }
+}
+
+/// [`SampleTape::forward_lanes`]'s samples one at a time: each with the cache hint for the
+/// next, through [`SampleTape::forward`] (`keep`) or [`SampleTape::render_forward`].
+#[cfg(not(target_arch = "spirv"))]
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn forward_one_at_a_time<T: SampleTape + ?Sized, P: ParamRead + ?Sized>(
+    tape: &mut T,
+    layout: &ModelLayout,
+    params: &Params<'_, P>,
+    ray: &Ray,
+    i: usize,
+    ts: &[f32],
+    keep: bool,
+    s: &mut SampleScratch,
+    sdf: &mut [f32; LANES],
+    rgb: &mut [[f32; 3]; LANES],
+) {
+    for (l, &t) in ts.iter().take(LANES).enumerate() {
+        if let Some(&next) = ts.get(l + 1) {
+            tape.prefetch(layout, params, ray, next);
+        }
+        (sdf[l], rgb[l]) = if keep {
+            tape.forward(layout, params, ray, i + l, t, s)
+        } else {
+            tape.render_forward(layout, params, ray, i + l, t, s)
+        };
     }
 }
 
@@ -1150,6 +1157,18 @@ pub trait RowHint {
     ) {
         mlp::mlp_forward_lanes(layout, wt, lanes, out);
     }
+}
+
+/// Names to `H` the 12 plane rows (each its channels) of level `l` of grid `g` (parameters
+/// `sl`) that a forward at `p` reads ([`grid::for_each_plane_row`]).
+#[inline(always)]
+fn hint_plane_rows<H: RowHint>(g: &GridLayout, sl: &[f32], l: usize, p: [f32; 3]) {
+    let nc = g.channels as usize;
+    grid::for_each_plane_row(g, l, p, |o| {
+        if let Some(row) = sl.get(o..o + nc) {
+            H::prefetch(row);
+        }
+    });
 }
 
 /// No cache hint.
@@ -1262,13 +1281,12 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
             return;
         };
         let g = &layout.appearance_grid;
-        let finest = (g.levels as usize).saturating_sub(1);
-        let nc = g.channels as usize;
-        grid::for_each_plane_row(g, finest, point_on_ray(ray, t), |o| {
-            if let Some(row) = sl.get(o..o + nc) {
-                H::prefetch(row);
-            }
-        });
+        hint_plane_rows::<H>(
+            g,
+            sl,
+            (g.levels as usize).saturating_sub(1),
+            point_on_ray(ray, t),
+        );
     }
 
     #[cfg(not(target_arch = "spirv"))]
@@ -1286,27 +1304,16 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
         ray: &Ray,
         i: usize,
         ts: &[f32],
+        keep: bool,
         s: &mut SampleScratch,
         sdf: &mut [f32; LANES],
         rgb: &mut [[f32; 3]; LANES],
     ) {
-        self.lanes_forward::<P, true>(layout, params, ray, i, ts, s, sdf, rgb);
-    }
-
-    #[cfg(not(target_arch = "spirv"))]
-    #[inline(always)]
-    fn render_forward_lanes<P: ParamRead + ?Sized>(
-        &mut self,
-        layout: &ModelLayout,
-        params: &Params<'_, P>,
-        ray: &Ray,
-        i: usize,
-        ts: &[f32],
-        s: &mut SampleScratch,
-        sdf: &mut [f32; LANES],
-        rgb: &mut [[f32; 3]; LANES],
-    ) {
-        self.lanes_forward::<P, false>(layout, params, ray, i, ts, s, sdf, rgb);
+        if keep {
+            self.lanes_forward::<P, true>(layout, params, ray, i, ts, s, sdf, rgb);
+        } else {
+            self.lanes_forward::<P, false>(layout, params, ray, i, ts, s, sdf, rgb);
+        }
     }
 
     #[inline(always)]
@@ -1439,8 +1446,8 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
 #[cfg(not(target_arch = "spirv"))]
 impl<H: RowHint> StoredTape<'_, H> {
     /// [`SampleTape::forward_lanes`] (`KEEP`: the training forward, which records every
-    /// sample's grid factors and decoder activations as [`SampleTape::forward`] does) and
-    /// [`SampleTape::render_forward_lanes`] (`!KEEP`: records nothing). The grids and the
+    /// sample's grid factors and decoder activations as [`SampleTape::forward`] does; `!KEEP`:
+    /// a render, which records nothing). The grids and the
     /// decoders' inputs sample by sample (the functions of the one-sample forward), then both
     /// decoders for all samples at once in lanes ([`mlp::mlp_forward_lanes`]): each sample's
     /// bits. Samples the tape has no record for, or no lanes, go one at a time.
@@ -1463,23 +1470,13 @@ impl<H: RowHint> StoredTape<'_, H> {
             Some(l) if recorded => l,
             other => {
                 self.lanes = other;
-                for (l, &t) in ts.iter().take(LANES).enumerate() {
-                    if let Some(&next) = ts.get(l + 1) {
-                        self.prefetch(layout, params, ray, next);
-                    }
-                    (sdf[l], rgb[l]) = if KEEP {
-                        self.forward(layout, params, ray, i + l, t, s)
-                    } else {
-                        self.render_forward(layout, params, ray, i + l, t, s)
-                    };
-                }
-                return;
+                let keep = KEEP;
+                return forward_one_at_a_time(self, layout, params, ray, i, ts, keep, s, sdf, rgb);
             }
         };
         let [gl, al] = &mut *lanes;
         let (gm, am) = (&layout.geometry_mlp, &layout.appearance_mlp);
-        let gn = (gm.n_in as usize).min(MAX_WIDTH);
-        let an = (am.n_in as usize).min(MAX_WIDTH);
+        let (gn, an) = (gm.dims().0, am.dims().0);
         for (l, &t) in ts.iter().take(LANES).enumerate() {
             // The cache hint one sample ahead in a ray's first group; the later groups'
             // samples were named during the previous group's decoders (below).
@@ -1538,13 +1535,8 @@ impl<H: RowHint> StoredTape<'_, H> {
             if let (true, Some(sl)) = (H::ACTIVE, params.geometry_grid.as_slice()) {
                 let g = &layout.geometry_grid;
                 let p = point_on_ray(ray, t);
-                let nc = g.channels as usize;
                 for lv in (g.levels as usize).saturating_sub(GROUP_HINT_LEVELS)..g.levels as usize {
-                    grid::for_each_plane_row(g, lv, p, |o| {
-                        if let Some(row) = sl.get(o..o + nc) {
-                            H::prefetch(row);
-                        }
-                    });
+                    hint_plane_rows::<H>(g, sl, lv, p);
                 }
             }
         }
@@ -1574,8 +1566,7 @@ impl<H: RowHint> StoredTape<'_, H> {
 #[cfg(not(target_arch = "spirv"))]
 #[inline(always)]
 fn lanes_to_tape(m: &MlpLayout, lanes: &MlpLanes, tape: &mut [MlpScratch]) {
-    let hidden = (m.hidden as usize).min(MAX_WIDTH);
-    let layers = (m.hidden_layers as usize).min(mlp::MAX_HIDDEN_LAYERS);
+    let (_, hidden, layers, _) = m.dims();
     for (l, rec) in tape.iter_mut().enumerate() {
         for (dst, src) in rec.act[1..=layers].iter_mut().zip(&lanes.act[1..=layers]) {
             for (d, a) in dst[..hidden].iter_mut().zip(src) {
@@ -1835,6 +1826,7 @@ fn ray_forward_with<P: ParamRead + ?Sized, T: SampleTape, const DEPTH_ONLY: bool
                 ray,
                 i,
                 &cache.t[i..n],
+                true,
                 s,
                 &mut sdf,
                 &mut rgb,

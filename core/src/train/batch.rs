@@ -133,12 +133,14 @@ impl<T: SampleTape> SampleTape for RenderTape<'_, T> {
         ray: &Ray,
         _i: usize,
         ts: &[f32],
+        _keep: bool,
         s: &mut SampleScratch,
         sdf: &mut [f32; crate::field::mlp::LANES],
         rgb: &mut [[f32; 3]; crate::field::mlp::LANES],
     ) {
+        // A render: nothing kept, slot 0 on as the one-sample forward.
         self.0
-            .render_forward_lanes(layout, params, ray, 0, ts, s, sdf, rgb);
+            .forward_lanes(layout, params, ray, 0, ts, false, s, sdf, rgb);
     }
 
     #[inline(always)]
