@@ -93,25 +93,36 @@ pub fn peak_rss_bytes() -> Option<u64> {
 }
 
 /// Times `steps` renders (forward) and `steps` training steps (forward + backward + Adam) of
-/// `rays` rays on `be`, after one warm-up of each.
+/// `rays` rays on `be`, after one warm-up of each: the mean time of each, or with `fastest`
+/// the fastest one (side-by-side comparisons on a machine whose neighbours come and go).
 fn measure<B: Backend>(
     be: &mut B,
     cfg: &ModelConfig,
     rays: usize,
     steps: usize,
+    fastest: bool,
 ) -> anyhow::Result<(f64, f64)>
 where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
     let steps = steps.max(1);
+    let summary = |times: &[f64]| {
+        if fastest {
+            times.iter().copied().fold(f64::INFINITY, f64::min)
+        } else {
+            times.iter().sum::<f64>() / times.len() as f64
+        }
+    };
     let batch = rays_in_dirs(&cfg.aabb, rays, 7, cfg.samples == 64);
     let mut res = vec![RayResult::default(); rays];
     be.render(&batch, &mut res)?; // warm-up
-    let t = Instant::now();
+    let mut times = Vec::with_capacity(steps);
     for _ in 0..steps {
+        let t = Instant::now();
         be.render(&batch, &mut res)?;
+        times.push(t.elapsed().as_secs_f64());
     }
-    let fwd = t.elapsed().as_secs_f64() / steps as f64;
+    let fwd = summary(&times);
     let loss = LossConfig {
         lambda_color: 1.0,
         lambda_depth: 0.0,
@@ -120,15 +131,17 @@ where
         seed: 0,
     };
     be.train_step(&batch, &loss, &mut res)?;
-    let t = Instant::now();
+    times.clear();
     for s in 0..steps {
         let l = LossConfig {
             seed: s as u32,
             ..loss
         };
+        let t = Instant::now();
         be.train_step(&batch, &l, &mut res)?;
+        times.push(t.elapsed().as_secs_f64());
     }
-    Ok((fwd, t.elapsed().as_secs_f64() / steps as f64))
+    Ok((fwd, summary(&times)))
 }
 
 fn row(
@@ -162,11 +175,12 @@ pub fn bench_cpu(
     threads: usize,
     rays: usize,
     steps: usize,
+    fastest: bool,
 ) -> anyhow::Result<BenchRow> {
     let layout = ModelLayout::new(cfg)?;
     let data = ModelData::new(layout, 1)?;
     let mut be = ParallelCpuBackend::new(data, paper_adam(), threads)?;
-    let t = measure(&mut be, cfg, rays, steps)?;
+    let t = measure(&mut be, cfg, rays, steps, fastest)?;
     let work = be.work_bytes() - layout.param_count() * 8;
     Ok(row(be.name(), name, cfg, &layout, rays, work, t))
 }
@@ -183,6 +197,7 @@ pub fn bench_vulkan(
     cfg: &ModelConfig,
     rays: usize,
     steps: usize,
+    fastest: bool,
     profile: bool,
 ) -> anyhow::Result<(BenchRow, Option<Profile>)> {
     let layout = ModelLayout::new(cfg)?;
@@ -217,7 +232,7 @@ pub fn bench_vulkan(
             s += 1;
         }
     }
-    let t = measure(&mut be, cfg, rays, steps)?;
+    let t = measure(&mut be, cfg, rays, steps, fastest)?;
     let batch_bytes = rays * (10 + 6) * 4 + rays * cfg.samples as usize * 9 * 4;
     let mut r = row(be.name(), name, cfg, &layout, rays, batch_bytes, t);
     // the backward's structure: fixed, or chosen by timing both on the first steps
@@ -300,6 +315,8 @@ pub struct BenchOptions {
     pub threads: usize,
     /// Time the Vulkan backend's passes (`--profile`).
     pub profile: bool,
+    /// Report each measurement's fastest step instead of the mean (`--fastest`).
+    pub fastest: bool,
 }
 
 /// Runs the benchmark and prints the table to `out`. A backend that cannot start (no Vulkan
@@ -319,7 +336,14 @@ pub fn run_bench(opts: &BenchOptions, out: &mut dyn std::io::Write) -> anyhow::R
             continue;
         }
         if want_cpu {
-            let r = bench_cpu(name, &cfg, opts.threads, opts.rays, opts.steps)?;
+            let r = bench_cpu(
+                name,
+                &cfg,
+                opts.threads,
+                opts.rays,
+                opts.steps,
+                opts.fastest,
+            )?;
             writeln!(out, "{}", format_row(&r))?;
             if name.starts_with("step") {
                 let flop = FLOP_PER_TRAIN_SAMPLE * (r.rays * r.samples_per_ray as usize) as f64;
@@ -340,7 +364,14 @@ pub fn run_bench(opts: &BenchOptions, out: &mut dyn std::io::Write) -> anyhow::R
             }
         }
         if want_vk {
-            match bench_vulkan(name, &cfg, opts.rays, opts.steps, opts.profile) {
+            match bench_vulkan(
+                name,
+                &cfg,
+                opts.rays,
+                opts.steps,
+                opts.fastest,
+                opts.profile,
+            ) {
                 Ok((r, prof)) => {
                     writeln!(out, "{}", format_row(&r))?;
                     if let Some((passes, wall)) = prof {

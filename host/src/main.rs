@@ -141,6 +141,10 @@ struct BenchArgs {
     /// Timed steps per measurement (after one warm-up step).
     #[arg(long, default_value_t = 3)]
     steps: usize,
+    /// Report the fastest of the timed steps instead of their mean (for side-by-side
+    /// comparisons on a machine whose load comes and goes).
+    #[arg(long)]
+    fastest: bool,
     /// Backends to measure: cpu, vulkan or all.
     #[arg(long, default_value = "all")]
     backend: String,
@@ -571,6 +575,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
     let BenchArgs {
         rays,
         steps,
+        fastest,
         backend,
         config,
         threads,
@@ -583,6 +588,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
         configs: config,
         threads,
         profile,
+        fastest,
     };
     himap::bench::run_bench(&opts, &mut std::io::stdout())?;
     Ok(())
