@@ -2034,6 +2034,10 @@ const GROUP_HINT_LEVELS: usize = 2;
 /// The geometry grid's finest levels whose gradient rows the backward announces.
 const GEOMETRY_HINT_LEVELS: usize = 2;
 
+/// How many samples ahead the backward announces gradient rows (two: the rows of one sample
+/// ahead were still in flight; three: slower, ARCHITECTURE.md).
+const GRAD_HINT_AHEAD: usize = 2;
+
 /// Announces to `sink` the plane rows of the grids' finest levels (the geometry's last two,
 /// the appearance's last) that the backward of the sample at depth `t` adds into (the same
 /// skips as [`sample_backward`]): a cache hint, no value changes. The coarser levels' rows and
@@ -2097,12 +2101,14 @@ pub fn ray_backward<P: ParamRead + ?Sized, S: ModelGradSink, T: SampleTape>(
         &mut d_beta,
     );
     if S::PREFETCH {
-        prefetch_sample_grads(layout, ray, cache.t[0], d_sdf[0], d_rgb[0], sink);
+        for j in 0..GRAD_HINT_AHEAD.min(n) {
+            prefetch_sample_grads(layout, ray, cache.t[j], d_sdf[j], d_rgb[j], sink);
+        }
     }
     let mut i = 0;
     while i < n {
-        if S::PREFETCH && i + 1 < n {
-            let j = i + 1;
+        if S::PREFETCH && i + GRAD_HINT_AHEAD < n {
+            let j = i + GRAD_HINT_AHEAD;
             prefetch_sample_grads(layout, ray, cache.t[j], d_sdf[j], d_rgb[j], sink);
         }
         tape.backward(
