@@ -129,10 +129,19 @@ impl AdamHw {
     /// where the bound does not hold, so the decision is the exact check's.
     #[inline(always)]
     pub fn within_bound(param: f32, m: f32, v: f32, grad: f32) -> bool {
-        (param.abs() < BOUND_P)
-            & (m.abs() < BOUND_M)
-            & (0.0..BOUND_P).contains(&v)
-            & (grad.abs() < BOUND_M)
+        Self::state_within_bound(param, m, v) & Self::grad_within_bound(grad)
+    }
+
+    /// The parameter and moment part of [`Self::within_bound`].
+    #[inline(always)]
+    pub fn state_within_bound(param: f32, m: f32, v: f32) -> bool {
+        (param.abs() < BOUND_P) & (m.abs() < BOUND_M) & (0.0..BOUND_P).contains(&v)
+    }
+
+    /// The gradient part of [`Self::within_bound`].
+    #[inline(always)]
+    pub fn grad_within_bound(grad: f32) -> bool {
+        grad.abs() < BOUND_M
     }
 }
 
@@ -140,6 +149,11 @@ impl AdamHw {
 /// and gradients).
 const BOUND_P: f32 = 1e30;
 const BOUND_M: f32 = 1e15;
+
+/// The largest magnitude [`fixed::from_fixed`] returns (an `i64` of quanta of `2^-40`):
+/// every summed gradient satisfies [`AdamHw::grad_within_bound`].
+const FIXED_SUM_BOUND: f32 = (1u64 << (63 - fixed::FRAC_BITS)) as f32;
+const _: () = assert!(FIXED_SUM_BOUND < BOUND_M);
 
 /// Per [`BLOCK`] of each group, whether any Adam moment in it is non-zero.
 fn live_blocks(data: &ModelData) -> [Vec<bool>; NUM_GROUPS] {
@@ -295,6 +309,11 @@ pub struct ParallelCpuBackend {
     /// Per block of `grads`: whether its sum may be non-zero (a block summed since it was
     /// last cleared). An untouched block's sum is zero: cleared once, not rewritten each step.
     sum_dirty: [Vec<bool>; NUM_GROUPS],
+    /// Per block: every parameter and moment in it is known to satisfy
+    /// [`AdamHw::state_within_bound`] (checked as the last Adam pass wrote them), so the next
+    /// step's check reads only the block's gradient sums. False where unknown (a fresh
+    /// backend, after [`Self::data_mut`] or a write): the check then reads the block.
+    bounded: [Vec<bool>; NUM_GROUPS],
 }
 
 /// Parameters per block of the sum and Adam pass (and of the touched / live flags).
@@ -712,6 +731,7 @@ impl ParallelCpuBackend {
             run: live.clone(),
             fresh: live.clone().map(|b| vec![false; b.len()]),
             sum_dirty: live.clone().map(|b| vec![false; b.len()]),
+            bounded: live.clone().map(|b| vec![false; b.len()]),
             live,
             live_stale: false,
             workers: (0..n)
@@ -868,6 +888,9 @@ impl ParallelCpuBackend {
             for d in self.sum_dirty.iter_mut() {
                 d.fill(false);
             }
+            for b in self.bounded.iter_mut() {
+                b.fill(false);
+            }
         }
         let ModelData { params, m, v, .. } = &self.data;
         let mut workers: Vec<_> = self
@@ -920,12 +943,12 @@ impl ParallelCpuBackend {
                 // Untouched: the sum is zero once cleared.
                 let clear = fresh[b] || dirty[b];
                 dirty[b] = fresh[b];
-                items.push((p, m, v, sum, clear, fresh[b], blocks));
+                items.push((p, m, v, sum, clear, fresh[b], self.bounded[g][b], blocks));
             }
             finite &= self.pool.install(|| {
                 items
                     .into_par_iter()
-                    .map(|(p, m, v, sum, clear, fresh, blocks)| {
+                    .map(|(p, m, v, sum, clear, fresh, state_bounded, blocks)| {
                         // Worker by worker over the whole block, then the check: loops the
                         // compiler vectorises (integer sums: the same in any order).
                         let mut blocks = blocks.into_iter();
@@ -952,13 +975,18 @@ impl ParallelCpuBackend {
                         let sum: &[i64] = if fresh { sum } else { &ZERO_BLOCK[..p.len()] };
                         // The bound (comparisons) first; the exact check (Adam's own
                         // operations) only where it does not settle it: the same decision.
+                        // A fixed-point sum is below 2^23 in magnitude (FIXED_SUM_BOUND),
+                        // so the gradient part of the bound always holds: where the last
+                        // Adam pass found the block's state within it, the whole bound holds
+                        // without reading the block.
                         let bounded = bound
-                            && p.iter().zip(m).zip(v).zip(sum.iter()).fold(
-                                true,
-                                |ok, (((&p, &m), &v), &q)| {
-                                    ok & AdamHw::within_bound(p, m, v, fixed::from_fixed(q))
-                                },
-                            );
+                            && (state_bounded
+                                || p.iter().zip(m).zip(v).zip(sum.iter()).fold(
+                                    true,
+                                    |ok, (((&p, &m), &v), &q)| {
+                                        ok & AdamHw::within_bound(p, m, v, fixed::from_fixed(q))
+                                    },
+                                ));
                         bounded
                             || p.iter().zip(m).zip(v).zip(sum.iter()).fold(
                                 true,
@@ -988,6 +1016,7 @@ impl ParallelCpuBackend {
                 .zip(m[g].chunks_mut(BLOCK))
                 .zip(v[g].chunks_mut(BLOCK))
                 .zip(self.grads[g].chunks(BLOCK))
+                .zip(self.bounded[g].iter_mut())
                 .enumerate()
                 .filter(|(b, _)| run[*b])
                 .map(|(b, x)| (fresh[b], x))
@@ -995,12 +1024,15 @@ impl ParallelCpuBackend {
             self.pool.install(|| {
                 items
                     .into_par_iter()
-                    .for_each(|(fresh, (((p, m), v), sum))| {
+                    .for_each(|(fresh, ((((p, m), v), sum), bounded))| {
                         // An untouched block's gradient is zero: the cached zero block.
                         let sum: &[i64] = if fresh { sum } else { &ZERO_BLOCK[..p.len()] };
+                        let mut ok = true;
                         for (((p, m), v), &q) in p.iter_mut().zip(m).zip(v).zip(sum) {
                             hw.update(p, m, v, fixed::from_fixed(q));
+                            ok &= AdamHw::state_within_bound(*p, *m, *v);
                         }
+                        *bounded = ok;
                     });
             });
         }
@@ -1125,6 +1157,7 @@ impl Backend for ParallelCpuBackend {
         reset_adam: bool,
     ) -> Result<(), CpuError> {
         let g = group as usize;
+        self.bounded[g].fill(false);
         let ModelData { params, m, v, .. } = &mut self.data;
         Ok(write_group(
             group,
@@ -1184,6 +1217,70 @@ impl Backend for ParallelCpuBackend {
 mod tests {
     use super::*;
     use himap_core::train::adam::{adam_update, AdamConfig};
+
+    /// The blocks Adam found within the bound skip the next step's check; a write of the
+    /// parameters (`write_params`) or of the whole state (`data_mut`) makes the check read
+    /// them again: a NaN second moment written after accepted steps (which the forward does
+    /// not read, so the loss stays finite) rejects the next step and changes nothing, and
+    /// once undone the steps are accepted again.
+    #[test]
+    fn written_state_is_checked_again() {
+        use himap_core::train::backend::Backend;
+        let config = himap_core::field::model::ModelConfig::paper(himap_core::Aabb {
+            min: [-1.0, -1.0, -1.0],
+            max: [1.0, 1.0, 1.0],
+        });
+        let layout = ModelLayout::new(&config).unwrap();
+        let adam = PerGroup::from_fn(|_| AdamConfig::new(1e-3));
+        let mut be = ParallelCpuBackend::new(ModelData::new(layout, 1).unwrap(), adam, 2).unwrap();
+        let rays: Vec<Ray> = (0..64)
+            .map(|i| {
+                let a = i as f32 * 0.1;
+                Ray {
+                    origin: [0.0, 0.0, -0.9],
+                    dir: [0.3 * a.cos(), 0.3 * a.sin(), 1.0],
+                    target: [0.2, 0.5, 0.8],
+                    target_depth: 1.0,
+                }
+            })
+            .collect();
+        let loss = LossConfig {
+            lambda_color: 1.0,
+            lambda_depth: 1.0,
+            ray_scale: 1.0 / 64.0,
+            color_to_geometry: true,
+            seed: 0,
+        };
+        let mut res = vec![RayResult::default(); rays.len()];
+        let mut step =
+            |be: &mut ParallelCpuBackend| be.train_step(&rays, &loss, &mut res).unwrap().rejected;
+        for _ in 0..3 {
+            assert!(!step(&mut be));
+        }
+        let g = Group::GeometryMlp;
+        assert!(be.bounded[g as usize].iter().all(|&b| b));
+        // a write leaves the group's blocks unchecked until Adam visits them again
+        let p = be.data().params[g].clone();
+        be.write_params(g, &p, false).unwrap();
+        assert!(be.bounded[g as usize].iter().all(|&b| !b));
+        assert!(!step(&mut be));
+        assert!(be.bounded[g as usize].iter().all(|&b| b));
+        // a NaN moment: rejected, nothing changes
+        let keep = be.data().v[g][0];
+        be.data_mut().v[g][0] = f32::NAN;
+        let before = be.data().params.clone();
+        assert!(step(&mut be), "a NaN moment must reject the step");
+        for gr in Group::ALL {
+            let same = before[gr]
+                .iter()
+                .zip(&be.data().params[gr])
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same, "{gr:?} changed by a rejected step");
+        }
+        assert!(be.data().v[g][0].is_nan());
+        be.data_mut().v[g][0] = keep;
+        assert!(!step(&mut be));
+    }
 
     /// The branch-free conversion equals the core's for every 5th f32 bit pattern below 2048
     /// in magnitude (both signs; about 430 million values, ties and subnormals included).
