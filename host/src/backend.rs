@@ -311,8 +311,9 @@ pub struct ParallelCpuBackend {
     sum_dirty: [Vec<bool>; NUM_GROUPS],
     /// Per block: every parameter and moment in it is known to satisfy
     /// [`AdamHw::state_within_bound`] (checked as the last Adam pass wrote them), so the next
-    /// step's check reads only the block's gradient sums. False where unknown (a fresh
-    /// backend, after [`Self::data_mut`] or a write): the check then reads the block.
+    /// step's check need not read the block (the gradient part of the bound always holds:
+    /// [`FIXED_SUM_BOUND`]). False where unknown (a fresh backend, after [`Self::data_mut`] or
+    /// a write): the check then reads the block.
     bounded: [Vec<bool>; NUM_GROUPS],
 }
 
