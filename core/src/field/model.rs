@@ -2258,6 +2258,15 @@ mod tests {
         }
     }
 
+    /// Both decoders' weights transposed ([`mlp::transpose_weights`]), as the stored tapes
+    /// read them.
+    fn transposed(layout: &ModelLayout, p: &[Vec<f32>; NUM_GROUPS]) -> [Vec<f32>; 2] {
+        let mut wt: [Vec<f32>; 2] = [vec![0.0; p[2].len()], vec![0.0; p[3].len()]];
+        mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
+        mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
+        wt
+    }
+
     fn params_of(p: &[Vec<f32>; NUM_GROUPS]) -> Params<'_, [f32]> {
         Params {
             geometry_grid: &p[0][..],
@@ -2285,9 +2294,7 @@ mod tests {
         // it bit for bit by the host's thread-invariance tests.
         let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
         let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
-        let mut wt: [Vec<f32>; 2] = [vec![0.0; p[2].len()], vec![0.0; p[3].len()]];
-        mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
-        mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
+        let wt = transposed(layout, p);
         let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
         let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(layout)];
         let mut lanes = [MlpLanes::new(), MlpLanes::new()];
@@ -2387,9 +2394,7 @@ mod tests {
         );
         let p = init(&layout);
         let params = params_of(&p);
-        let mut wt: [Vec<f32>; 2] = [vec![0.0; p[2].len()], vec![0.0; p[3].len()]];
-        mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
-        mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
+        let wt = transposed(&layout, &p);
         let (mut s, mut q) = (SampleScratch::new(), SampleScratch::new());
         let mut act = MlpScratch::new();
         let mut r = SplitMix::new(17);
@@ -2430,9 +2435,7 @@ mod tests {
                 layout.config.min_transmittance = t_min;
                 let p = init(&layout);
                 let params = params_of(&p);
-                let mut wt: [Vec<f32>; 2] = [vec![0.0; p[2].len()], vec![0.0; p[3].len()]];
-                mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
-                mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
+                let wt = transposed(&layout, &p);
                 let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
                 let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
                 let mut s = SampleScratch::new();
@@ -2686,9 +2689,7 @@ mod tests {
                 layout.config.min_transmittance = t_min;
                 let p = init(&layout);
                 let params = params_of(&p);
-                let mut wt: [Vec<f32>; 2] = [vec![0.0; p[2].len()], vec![0.0; p[3].len()]];
-                mlp::transpose_weights(&layout.geometry_mlp, &p[2], &mut wt[0]).unwrap();
-                mlp::transpose_weights(&layout.appearance_mlp, &p[3], &mut wt[1]).unwrap();
+                let wt = transposed(&layout, &p);
                 let loss = fd_loss(24);
                 for (i, r) in rays(24).iter().enumerate() {
                     let mut runs = Vec::new();
