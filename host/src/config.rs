@@ -82,6 +82,13 @@ pub struct ModelSection {
     pub geo_init_solid: f32,
     /// Farthest sampled depth along a camera ray (m, z-depth; 0 = up to the box exit).
     pub max_depth: f32,
+    /// Samples beyond `max_depth` (0 = none): a ray that leaves the box beyond `max_depth`
+    /// gets this many more, spaced uniformly in inverse depth up to `far_depth`, so that a
+    /// space larger than `max_depth` (a hall, an open office) is reached without spreading
+    /// the near samples.
+    pub far_samples: u32,
+    /// Farthest depth of the `far_samples` (m, z-depth; must exceed `max_depth`).
+    pub far_depth: f32,
     /// Early ray termination: a ray's compositing stops once its transmittance is below this
     /// (0 = never, the presets' default). The samples behind the first surface are then
     /// neither evaluated on the CPU nor back-propagated on any backend; the cut-off weight is
@@ -375,6 +382,8 @@ impl Config {
                 geo_init_radius: 1.5,
                 geo_init_solid: 0.3,
                 max_depth: 6.0,
+                far_samples: 0,
+                far_depth: 0.0,
                 min_transmittance: 0.0,
                 geo_init_iters: 200,
             },
@@ -644,6 +653,8 @@ impl Config {
             grid_init_std: m.grid_init_std,
             sdf_bias_init: m.sdf_bias_init,
             max_depth: m.max_depth,
+            far_samples: m.far_samples,
+            far_depth: m.far_depth,
             min_transmittance: m.min_transmittance,
         })
     }

@@ -66,6 +66,8 @@ pub fn small_config(render_mode: RenderMode) -> ModelConfig {
         grid_init_std: 0.1,
         sdf_bias_init: 0.3,
         max_depth: 0.0,
+        far_samples: 0,
+        far_depth: 0.0,
         min_transmittance: 0.0,
     }
 }

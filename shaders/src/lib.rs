@@ -484,17 +484,11 @@ fn first_or_zero(v: &[f32]) -> f32 {
     float_at(v, 0)
 }
 
-/// Samples per ray of a layout (`config.samples`, at most `MAX_SAMPLES`, at least 1).
+/// Samples per ray of a layout (`config.max_ray_samples()`: `samples` plus `far_samples`
+/// when they apply, at most `MAX_SAMPLES`, at least 1).
 #[inline(always)]
 fn samples_per_ray(layout: &ModelLayout) -> usize {
-    let s = layout.config.samples as usize;
-    if s > MAX_SAMPLES {
-        MAX_SAMPLES
-    } else if s == 0 {
-        1
-    } else {
-        s
-    }
+    layout.config.max_ray_samples()
 }
 
 /// Pass 1 of a step or a render: one sample per invocation. Record `i` is sample `k = i % S`

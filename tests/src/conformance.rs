@@ -320,6 +320,26 @@ pub fn one_step_with_early_termination<C: Candidate>(c: &C) {
     one_step(c, &cfg);
 }
 
+/// [`one_step`] with samples beyond `max_depth` (`far_samples` in inverse depth): the per-ray
+/// sample counts differ between rays (at least 20 of them get the far samples).
+pub fn one_step_with_far_samples<C: Candidate>(c: &C) {
+    let mut cfg = small_config(RenderMode::SdfDensity);
+    cfg.max_depth = 0.8;
+    cfg.far_samples = 6;
+    cfg.far_depth = 3.0;
+    let (data, rays) = setup_with(&cfg, 6, 200);
+    let far = rays
+        .iter()
+        .filter(|r| himap_core::field::model::ray_span(&data.layout, r).2 > cfg.samples as usize)
+        .count();
+    assert!(
+        far >= 20,
+        "only {far} of {} rays got far samples",
+        rays.len()
+    );
+    one_step(c, &cfg);
+}
+
 /// `set_min_transmittance` between steps (the mapper's initialisation threshold) changes the
 /// backend's compositing exactly as the reference's: the renders change, every step's
 /// results and the final state agree, and thresholds outside [0, 1) are errors.

@@ -76,6 +76,11 @@ macro_rules! conformance_suite {
             }
 
             #[test]
+            fn one_step_with_far_samples() {
+                conformance::one_step_with_far_samples(&$candidate);
+            }
+
+            #[test]
             fn termination_threshold_between_steps() {
                 conformance::termination_threshold_between_steps(&$candidate);
             }

@@ -47,7 +47,6 @@ use himap_core::error::check_len;
 use himap_core::field::model::{
     Group, LossConfig, ModelLayout, PerGroup, Ray, RayResult, NUM_GROUPS,
 };
-use himap_core::field::render::MAX_SAMPLES;
 use himap_core::gpu_abi::{
     pixel_result_from_record, ray_result_from_record, TrainPush, PIXEL_AUX_FLOATS,
     PIXEL_RESULT_FLOATS, PIXEL_RESULT_LOSSES, RAY_FLOATS, RESULT_FLOATS, RESULT_LOSS,
@@ -693,9 +692,10 @@ impl VulkanBackend {
         Ok(self)
     }
 
-    /// Samples per ray of the layout (`config.samples`, 1..=MAX_SAMPLES), as the shaders.
+    /// Samples per ray of the layout (`config.max_ray_samples()`, 1..=MAX_SAMPLES), as the
+    /// shaders.
     fn samples_per_ray(&self) -> usize {
-        (self.layout.config.samples as usize).clamp(1, MAX_SAMPLES)
+        self.layout.config.max_ray_samples()
     }
 
     /// Makes room for the sample records of `rays` rays.

@@ -224,6 +224,14 @@ pub struct ModelConfig {
     /// A large scene box (a building, the default box around the first camera) otherwise
     /// spreads the samples over tens of metres.
     pub max_depth: f32,
+    /// Samples beyond `max_depth` (0 = none): a ray whose box exit lies beyond `max_depth`
+    /// gets this many more, stratified uniformly in inverse depth (disparity) on
+    /// `[max_depth, min(exit, far_depth)]`, so that surfaces of a large space beyond
+    /// `max_depth` are reached at the cost of a few samples (the near spacing unchanged).
+    pub far_samples: u32,
+    /// Farthest depth of the `far_samples` (same units as `max_depth`; must exceed it when
+    /// `far_samples` > 0).
+    pub far_depth: f32,
     /// Early ray termination: compositing stops after the first sample past which the
     /// transmittance is below this (0 = never; [`render`]'s module docs). The samples behind
     /// a surface then cost nothing on the CPU (not evaluated) and nothing in any backward.
@@ -248,7 +256,32 @@ impl ModelConfig {
             grid_init_std: 0.01,
             sdf_bias_init: 0.0,
             max_depth: 0.0,
+            far_samples: 0,
+            far_depth: 0.0,
             min_transmittance: 0.0,
+        }
+    }
+
+    /// Whether rays get [`Self::far_samples`] beyond [`Self::max_depth`].
+    #[inline(always)]
+    pub fn has_far_segment(&self) -> bool {
+        self.far_samples > 0 && self.max_depth > 0.0 && self.far_depth > self.max_depth
+    }
+
+    /// The most samples a ray can have: `samples`, plus `far_samples` when rays get them
+    /// (at most `MAX_SAMPLES`, at least 1). Per-ray buffers are this long.
+    #[inline(always)]
+    pub fn max_ray_samples(&self) -> usize {
+        let mut n = self.samples as usize;
+        if self.has_far_segment() {
+            n += self.far_samples as usize;
+        }
+        if n > MAX_SAMPLES {
+            MAX_SAMPLES
+        } else if n == 0 {
+            1
+        } else {
+            n
         }
     }
 }
@@ -313,6 +346,20 @@ impl ModelLayout {
                 needed: config.samples as u64,
                 capacity: MAX_SAMPLES as u64,
             });
+        }
+        if config.far_samples > 0 {
+            if !(config.max_depth > 0.0 && config.far_depth > config.max_depth) {
+                return Err(Error::InvalidConfig(
+                    "far_samples needs max_depth > 0 and far_depth > max_depth",
+                ));
+            }
+            if config.samples as usize + config.far_samples as usize > MAX_SAMPLES {
+                return Err(Error::Capacity {
+                    what: "samples plus far samples per ray",
+                    needed: config.samples as u64 + config.far_samples as u64,
+                    capacity: MAX_SAMPLES as u64,
+                });
+            }
         }
         if !(config.beta_init.is_finite() && config.beta_init > 0.0) {
             return Err(Error::InvalidConfig(
@@ -866,25 +913,91 @@ fn point_on_ray(ray: &Ray, t: f32) -> [f32; 3] {
     ]
 }
 
-/// Where a ray crosses the scene box: entry and exit depths and its sample count
-/// (`layout.config.samples`, at most `MAX_SAMPLES`; 0 when the ray misses the box).
-#[inline(always)]
-pub fn ray_span(layout: &ModelLayout, ray: &Ray) -> (f32, f32, usize) {
-    let (near, mut far, hit) = render::ray_aabb(ray.origin, ray.dir, &layout.config.aabb);
-    let limit = layout.config.max_depth;
-    if limit > 0.0 && far > limit {
-        far = limit;
-    }
-    if !(hit && far > near) {
-        return (near, far, 0);
-    }
-    let n = layout.config.samples as usize;
-    (near, far, if n > MAX_SAMPLES { MAX_SAMPLES } else { n })
+/// A ray's sample segments: `n_near` stratified samples on `[near, mid]`, then `n - n_near`
+/// stratified in inverse depth on `[mid, far]` (none unless the far segment applies).
+#[derive(Clone, Copy)]
+struct Segments {
+    near: f32,
+    mid: f32,
+    far: f32,
+    n_near: usize,
+    n: usize,
 }
 
-/// The sample depths of a ray: `t[0..n]` stratified between the ray's entry into and exit
-/// from the scene box (jittered with `seed`/`ray_id` when `jitter`, bin centres otherwise).
-/// Returns `n` ([`ray_span`]). Stage 1 of [`ray_forward`]; [`ray_sample`] gives one of them.
+/// The segments of `ray`: the box intersection, cut at `max_depth`; when the box exit lies
+/// beyond `max_depth` and [`ModelConfig::has_far_segment`], `far_samples` more up to
+/// `min(exit, far_depth)`. `n = 0` when the ray misses the box.
+#[inline(always)]
+fn ray_segments(layout: &ModelLayout, ray: &Ray) -> Segments {
+    let c = &layout.config;
+    let (near, exit, hit) = render::ray_aabb(ray.origin, ray.dir, &c.aabb);
+    let mut mid = exit;
+    let limit = c.max_depth;
+    if limit > 0.0 && mid > limit {
+        mid = limit;
+    }
+    let mut seg = Segments {
+        near,
+        mid,
+        far: mid,
+        n_near: 0,
+        n: 0,
+    };
+    if !(hit && mid > near) {
+        return seg;
+    }
+    let n = c.samples as usize;
+    seg.n_near = if n > MAX_SAMPLES { MAX_SAMPLES } else { n };
+    seg.n = seg.n_near;
+    if c.has_far_segment() && exit > mid {
+        seg.far = if exit < c.far_depth {
+            exit
+        } else {
+            c.far_depth
+        };
+        let total = seg.n_near + c.far_samples as usize;
+        seg.n = if total > MAX_SAMPLES {
+            MAX_SAMPLES
+        } else {
+            total
+        };
+    }
+    seg
+}
+
+/// Where a ray's samples lie: the depth of its first sample bin's start, of its last one's
+/// end, and its sample count (`layout.config.samples`, plus `far_samples` when the far
+/// segment applies, at most `MAX_SAMPLES`; 0 when the ray misses the box).
+#[inline(always)]
+pub fn ray_span(layout: &ModelLayout, ray: &Ray) -> (f32, f32, usize) {
+    let s = ray_segments(layout, ray);
+    (s.near, s.far, s.n)
+}
+
+/// Sample `k < seg.n` of a ray.
+#[inline(always)]
+fn segment_sample(seg: &Segments, seed: u32, ray_id: u32, jitter: bool, k: usize) -> f32 {
+    if k < seg.n_near {
+        render::stratified_sample(seg.near, seg.mid, seg.n_near, seed, ray_id, jitter, k)
+    } else {
+        render::disparity_sample(
+            seg.mid,
+            seg.far,
+            seg.n - seg.n_near,
+            seed,
+            ray_id,
+            jitter,
+            k,
+            k - seg.n_near,
+        )
+    }
+}
+
+/// The sample depths of a ray: `t[0..n]` stratified between the ray's entry into the scene
+/// box and `max_depth` (or the box exit), then the far segment's (jittered with
+/// `seed`/`ray_id` when `jitter`, bin centres otherwise); entries past `n` are the last
+/// depth. Returns `n` ([`ray_span`]). Stage 1 of [`ray_forward`]; [`ray_sample`] gives one
+/// of them.
 pub fn ray_samples(
     layout: &ModelLayout,
     ray: &Ray,
@@ -893,11 +1006,23 @@ pub fn ray_samples(
     jitter: bool,
     t: &mut [f32; MAX_SAMPLES],
 ) -> usize {
-    let (near, far, n) = ray_span(layout, ray);
-    if n > 0 {
-        render::stratified_samples(near, far, n, seed, ray_id, jitter, t);
+    let seg = ray_segments(layout, ray);
+    if seg.n > 0 {
+        if seg.n == seg.n_near {
+            render::stratified_samples(seg.near, seg.mid, seg.n, seed, ray_id, jitter, t);
+        } else {
+            let mut k = 0;
+            while k < MAX_SAMPLES {
+                t[k] = if k < seg.n {
+                    segment_sample(&seg, seed, ray_id, jitter, k)
+                } else {
+                    seg.far
+                };
+                k += 1;
+            }
+        }
     }
-    n
+    seg.n
 }
 
 /// Depth `t_k` of sample `k` of a ray, the same bits as [`ray_samples`] writes, and the ray's
@@ -912,14 +1037,11 @@ pub fn ray_sample(
     jitter: bool,
     k: usize,
 ) -> (f32, usize) {
-    let (near, far, n) = ray_span(layout, ray);
-    if k >= n {
-        return (far, n);
+    let seg = ray_segments(layout, ray);
+    if k >= seg.n {
+        return (seg.far, seg.n);
     }
-    (
-        render::stratified_sample(near, far, n, seed, ray_id, jitter, k),
-        n,
-    )
+    (segment_sample(&seg, seed, ray_id, jitter, k), seg.n)
 }
 
 /// Signed distance and colour at depth `t` along `ray` (stage 2 of [`ray_forward`], one
@@ -2165,6 +2287,8 @@ mod tests {
             grid_init_std: 0.2,
             sdf_bias_init: 0.2,
             max_depth: 0.0,
+            far_samples: 0,
+            far_depth: 0.0,
             min_transmittance: 0.0,
         };
         ModelLayout::new(&cfg).unwrap()
@@ -2217,6 +2341,77 @@ mod tests {
             }
         }
         assert!(hits > 10);
+    }
+
+    #[test]
+    fn far_samples_extend_rays_beyond_max_depth_in_inverse_depth() {
+        // A 20 m box, samples to 2 m, 6 far samples to 8 m: a ray along +x from the centre
+        // leaves the box at 10 m, so it gets 12 + 6 samples, the far ones in [2, 8] with bins
+        // equal in 1/t (bin centres without jitter: 1/t = 1/2 - (j + 0.5) (1/2 - 1/8) / 6).
+        let base = small(
+            RenderMode::SdfDensity,
+            crate::field::grid::GridKind::Factorized,
+        );
+        let mut cfg = base.config;
+        cfg.aabb = Aabb::new([-10.0, -10.0, -10.0], [10.0, 10.0, 10.0]);
+        cfg.max_depth = 2.0;
+        cfg.far_samples = 6;
+        cfg.far_depth = 8.0;
+        let layout = ModelLayout::new(&cfg).unwrap();
+        assert_eq!(cfg.max_ray_samples(), 18);
+        let ray = Ray {
+            origin: [0.0; 3],
+            dir: [1.0, 0.0, 0.0],
+            target: [0.0; 3],
+            target_depth: 0.0,
+        };
+        let mut t = [0.0f32; MAX_SAMPLES];
+        let n = ray_samples(&layout, &ray, 3, 5, false, &mut t);
+        assert_eq!(n, 18);
+        for j in 0..6 {
+            let want = 1.0 / (0.5 - (j as f64 + 0.5) * (0.5 - 0.125) / 6.0);
+            assert!(
+                (t[12 + j] as f64 - want).abs() < 1e-5 * want,
+                "far sample {j}"
+            );
+        }
+        // Jittered: non-decreasing, inside [0, 8], near ones below 2 m, and one sample
+        // alone has the bits of the whole ray's.
+        let n = ray_samples(&layout, &ray, 3, 5, true, &mut t);
+        assert_eq!(n, 18);
+        assert!(t[..n].windows(2).all(|w| w[0] <= w[1]));
+        assert!(t[..12].iter().all(|&x| (0.0..=2.0).contains(&x)));
+        assert!(t[12..n].iter().all(|&x| (2.0..=8.0).contains(&x)));
+        for (k, want) in t.iter().enumerate().take(n) {
+            let (tk, nk) = ray_sample(&layout, &ray, 3, 5, true, k);
+            assert_eq!((tk.to_bits(), nk), (want.to_bits(), n));
+        }
+        assert_eq!(ray_span(&layout, &ray), (0.0, 8.0, 18));
+        // A ray that leaves the box before max_depth gets no far samples; one that leaves it
+        // between max_depth and far_depth gets them up to the exit.
+        let near_wall = Ray {
+            origin: [9.0, 0.0, 0.0],
+            ..ray
+        };
+        assert_eq!(ray_samples(&layout, &near_wall, 0, 0, true, &mut t), 12);
+        let mid_wall = Ray {
+            origin: [5.0, 0.0, 0.0],
+            ..ray
+        };
+        assert_eq!(ray_span(&layout, &mid_wall), (0.0, 5.0, 18));
+        // Off unless far_depth exceeds max_depth; too many samples in all is an error.
+        let mut off = cfg;
+        off.far_samples = 0;
+        assert_eq!(
+            ray_samples(&ModelLayout::new(&off).unwrap(), &ray, 0, 0, true, &mut t),
+            12
+        );
+        let mut bad = cfg;
+        bad.far_depth = 2.0;
+        assert!(ModelLayout::new(&bad).is_err());
+        bad.far_depth = 8.0;
+        bad.far_samples = MAX_SAMPLES as u32;
+        assert!(ModelLayout::new(&bad).is_err());
     }
 
     struct F64Sink {

@@ -177,6 +177,38 @@ pub fn stratified_sample(
     math::clamp(near + (i as f32 + u) * step, near, far)
 }
 
+/// Sample `j < m` of `m` samples stratified uniformly in inverse depth on `[a, b]` (`0 < a <
+/// b`): bin `j` spans `1/t` from `1/a + j (1/b - 1/a) / m` to the next, the sample at
+/// fraction `u = crate::rng::uniform(seed, ray_id, k)` of it (`k`: the sample's index on its
+/// ray, so that its jitter differs from the near samples'; 0.5 without `jitter`), clamped to
+/// `[a, b]`. Bins grow with depth, as a pixel's footprint does.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub fn disparity_sample(
+    a: f32,
+    b: f32,
+    m: usize,
+    seed: u32,
+    ray_id: u32,
+    jitter: bool,
+    k: usize,
+    j: usize,
+) -> f32 {
+    let b = if b > a { b } else { a };
+    let (ia, ib) = (math::div(1.0, a), math::div(1.0, b));
+    let step = if m > 0 {
+        math::div(ib - ia, m as f32)
+    } else {
+        0.0
+    };
+    let u = if jitter {
+        crate::rng::uniform(seed, ray_id, k as u32)
+    } else {
+        0.5
+    };
+    math::clamp(math::div(1.0, ia + (j as f32 + u) * step), a, b)
+}
+
 /// Forward results for one ray. Entries at and past `n` are zero.
 #[derive(Clone, Copy)]
 pub struct RayOutput {

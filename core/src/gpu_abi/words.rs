@@ -12,7 +12,7 @@
 //! | [`GridLayout`] | [`GRID_LAYOUT`] = 98 | kind, levels, channels, param_count, aabb (6), then per level (8): res (3), offset, plane_offsets (3), line_offsets (3), count |
 //! | [`MlpLayout`] | [`MLP_LAYOUT`] = 15 | n_in, hidden, hidden_layers, n_out, param_count, weight_offsets (5), bias_offsets (5) |
 //! | [`GridConfig`] | [`GRID_CONFIG`] = 11 | kind, levels, channels, cell_sizes (8) |
-//! | [`ModelConfig`] | [`MODEL_CONFIG`] = 38 | aabb (6), geometry grid config (11), appearance grid config (11), hidden, hidden_layers, dual_path, render_mode, samples, beta_init, grid_init_std, sdf_bias_init, max_depth, min_transmittance |
+//! | [`ModelConfig`] | [`MODEL_CONFIG`] = 40 | aabb (6), geometry grid config (11), appearance grid config (11), hidden, hidden_layers, dual_path, render_mode, samples, beta_init, grid_init_std, sdf_bias_init, max_depth, min_transmittance, far_samples, far_depth |
 //! | [`ModelLayout`] | [`MODEL_LAYOUT`] = 263 | config, geometry grid layout, appearance grid layout, geometry MLP layout, appearance MLP layout |
 //! | [`MappingLoss`] | [`MAPPING_LOSS`] = 21 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior, depth_prior_near, planar (weight, edge, beta), warp stride, planar gated |
 //! | window | [`WINDOW`] = 448 | intrinsics, frames, image width, image height, slots ([`MAX_WINDOW`]), poses ([`MAX_WINDOW`] x [`POSE`]), mapping loss |
@@ -43,7 +43,7 @@ pub const MLP_LAYOUT: usize = 5 + 2 * (MAX_HIDDEN_LAYERS + 1);
 /// Words of a [`GridConfig`].
 pub const GRID_CONFIG: usize = 3 + MAX_LEVELS;
 /// Words of a [`ModelConfig`].
-pub const MODEL_CONFIG: usize = AABB + 2 * GRID_CONFIG + 10;
+pub const MODEL_CONFIG: usize = AABB + 2 * GRID_CONFIG + 12;
 /// Words of a [`ModelLayout`].
 pub const MODEL_LAYOUT: usize = MODEL_CONFIG + 2 * GRID_LAYOUT + 2 * MLP_LAYOUT;
 
@@ -342,6 +342,8 @@ pub fn model_config_from_words(w: &[u32], at: usize) -> ModelConfig {
         sdf_bias_init: fword(w, b + 7),
         max_depth: fword(w, b + 8),
         min_transmittance: fword(w, b + 9),
+        far_samples: word(w, b + 10),
+        far_depth: fword(w, b + 11),
     }
 }
 
@@ -362,6 +364,8 @@ pub fn model_config_to_words(c: &ModelConfig, w: &mut [u32], at: usize) {
     put(w, b + 7, c.sdf_bias_init.to_bits());
     put(w, b + 8, c.max_depth.to_bits());
     put(w, b + 9, c.min_transmittance.to_bits());
+    put(w, b + 10, c.far_samples);
+    put(w, b + 11, c.far_depth.to_bits());
 }
 
 /// Decodes a [`ModelLayout`] without re-validating it (the host built it with
