@@ -158,6 +158,41 @@ impl HousePath {
     }
 }
 
+/// The layouts [`House::generate_kind`] builds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum HouseKind {
+    /// Three rooms of 3.5-4 x 4.2-4.8 m (at most 12.3 m long: the default 24 m box around the
+    /// first camera holds it; views reach beyond 6 m only through the doors).
+    #[default]
+    Rooms,
+    /// Two halls of 8-9 x 7.5-8.5 m, 2.8-3.2 m high, joined by a door: most views reach
+    /// beyond `model.max_depth`'s 6 m, and the walk (about 17 m from end to end) leaves the
+    /// default box, which grows ([`crate::grow`]).
+    Hall,
+}
+
+/// A base and a span (m): a value drawn as `base + span * u`.
+type Range = (f32, f32);
+
+impl HouseKind {
+    /// Rooms, and the ranges of the room lengths, the width and the height.
+    fn shape(self) -> (usize, Range, Range, Range) {
+        match self {
+            HouseKind::Rooms => (3, (3.5, 0.5), (4.2, 0.6), (2.5, 0.2)),
+            HouseKind::Hall => (2, (8.0, 1.0), (7.5, 1.0), (2.8, 0.4)),
+        }
+    }
+
+    /// Seeds the random stream (the rooms' salt keeps the houses of earlier sessions).
+    fn salt(self) -> u64 {
+        match self {
+            HouseKind::Rooms => 0x4F1B_BCDC_BFA5_3E0B,
+            HouseKind::Hall => 0x9E37_79B9_7F4A_7C15,
+        }
+    }
+}
+
 /// The house: its solids, the free interior, materials and the walk.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct House {
@@ -192,14 +227,18 @@ impl House {
 
     /// Builds the house for `seed` (deterministic).
     pub fn generate(seed: u64) -> House {
-        let mut rng = SplitMix::new(seed ^ 0x4F1B_BCDC_BFA5_3E0B);
+        Self::generate_kind(seed, HouseKind::Rooms)
+    }
+
+    /// Builds the house of `kind` for `seed` (deterministic).
+    pub fn generate_kind(seed: u64, kind: HouseKind) -> House {
+        let mut rng = SplitMix::new(seed ^ kind.salt());
         let mut unit = move || rng.unit();
         let u: &mut dyn FnMut() -> f32 = &mut unit;
-        let n = 3;
-        // At most 12.3 m long: the default 24 m box around the first camera holds it.
-        let lengths: Vec<f32> = (0..n).map(|_| 3.5 + 0.5 * u()).collect();
-        let width = 4.2 + 0.6 * u();
-        let height = 2.5 + 0.2 * u();
+        let (n, len, wid, hgt) = kind.shape();
+        let lengths: Vec<f32> = (0..n).map(|_| len.0 + len.1 * u()).collect();
+        let width = wid.0 + wid.1 * u();
+        let height = hgt.0 + hgt.1 * u();
         let doors: Vec<f32> = (0..n - 1)
             .map(|_| 0.5 * width + 0.8 * (u() - 0.5))
             .collect();
@@ -342,6 +381,7 @@ pub struct HouseOptions {
     pub width: u32,
     pub height: u32,
     pub seed: u64,
+    pub kind: HouseKind,
 }
 
 /// What [`write_house`] wrote.
@@ -358,6 +398,7 @@ pub struct HouseSummary {
 #[derive(Serialize)]
 struct HouseFile<'a> {
     seed: u64,
+    kind: HouseKind,
     frames: usize,
     width: u32,
     height: u32,
@@ -370,7 +411,7 @@ pub fn write_house(out: &Path, opts: &HouseOptions) -> anyhow::Result<HouseSumma
     if opts.frames < 2 {
         bail!("the house sequence needs at least two frames");
     }
-    let house = House::generate(opts.seed);
+    let house = House::generate_kind(opts.seed, opts.kind);
     let k = synth_intrinsics(opts.width, opts.height);
     let poses: Vec<Pose> = (0..opts.frames)
         .map(|i| house.path.pose(i as f32 / (opts.frames - 1) as f32))
@@ -383,6 +424,7 @@ pub fn write_house(out: &Path, opts: &HouseOptions) -> anyhow::Result<HouseSumma
     let path_m = house.path.length(4096);
     let file = HouseFile {
         seed: opts.seed,
+        kind: opts.kind,
         frames: opts.frames,
         width: opts.width,
         height: opts.height,
@@ -592,8 +634,9 @@ mod tests {
 
     #[test]
     fn the_walk_is_long_free_and_crosses_every_door() {
-        for seed in 0..4 {
-            let h = House::generate(seed);
+        let kinds = [HouseKind::Rooms, HouseKind::Hall];
+        for (seed, kind) in (0..4).flat_map(|s| kinds.map(|k| (s, k))) {
+            let h = House::generate_kind(seed, kind);
             assert!(h.path.length(4096) >= MIN_PATH_M, "seed {seed}");
             assert_eq!(h.doors.len(), h.lengths.len() - 1);
             let (lo, hi) = h.interior();
@@ -614,7 +657,11 @@ mod tests {
                 }
             }
             // at least two boxes of furniture per room
-            assert!(h.solids.len() >= 1 + 3 * 3 + 1 + 2 * 3 + 6, "seed {seed}");
+            let n = h.lengths.len();
+            assert!(
+                h.solids.len() >= 1 + 3 * n + 1 + 3 * (n - 1) + 2 * n,
+                "seed {seed}"
+            );
         }
     }
 
@@ -670,5 +717,27 @@ mod tests {
         assert_ne!(House::generate(5), House::generate(6));
         let h = House::generate(5);
         assert_eq!(h.path.pose(0.37).m, House::generate(5).path.pose(0.37).m);
+        // The rooms' stream is the one of earlier sessions; the hall is another house.
+        assert_eq!(House::generate_kind(5, HouseKind::Rooms), h);
+        assert_ne!(House::generate_kind(5, HouseKind::Hall), h);
+    }
+
+    #[test]
+    fn the_hall_is_larger_than_the_default_depth_limit() {
+        // Halls 8-9 m long and 7.5-8.5 m wide: a good share of what the walk sees lies
+        // beyond 6 m (what the hall is for), and the walk is longer than the default box's
+        // half width (12 m), so mapping it grows the box.
+        let h = House::generate_kind(2, HouseKind::Hall);
+        let (lo, hi) = h.interior();
+        assert!(hi[0] - lo[0] > 16.0 && hi[1] - lo[1] >= 7.5);
+        let k = synth_intrinsics(32, 24);
+        let (mut far, mut all) = (0, 0);
+        for i in 0..20 {
+            let (_, depth) = h.render(&k, &h.path.pose(i as f32 / 19.0));
+            all += depth.data.len();
+            far += depth.data.iter().filter(|&&d| d > 6.0).count();
+        }
+        assert!(far * 10 > all, "{far} of {all} beyond 6 m");
+        assert!(h.path.eye(1.0)[0] - h.path.eye(0.0)[0] > 12.0);
     }
 }
