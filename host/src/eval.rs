@@ -446,6 +446,16 @@ where
     D: AsRef<[f32]>,
     I: IntoIterator<Item = (Intrinsics, Pose, Option<D>)>,
 {
+    cull_mesh_within(mesh, views, occlusion_eps, f32::INFINITY)
+}
+
+/// [`cull_mesh`] where a view sees only vertices within `max_z` of its camera (depth along
+/// its optical axis): what it has farther is not counted as seen by it.
+pub fn cull_mesh_within<D, I>(mesh: &Mesh, views: I, occlusion_eps: Option<f32>, max_z: f32) -> Mesh
+where
+    D: AsRef<[f32]>,
+    I: IntoIterator<Item = (Intrinsics, Pose, Option<D>)>,
+{
     let mut seen = vec![false; mesh.vertices.len()];
     for (k, pose, depth) in views {
         let depth = depth.as_ref().map(|d| d.as_ref());
@@ -463,7 +473,7 @@ where
                 }
                 let (u, v, z) = k.project(c);
                 let inside = (0.0..=w - 1.0).contains(&u) && (0.0..=h - 1.0).contains(&v);
-                if !inside {
+                if !inside || z > max_z {
                     return;
                 }
                 *s = match (occlusion_eps, depth) {
@@ -992,6 +1002,13 @@ mod tests {
             faces: vec![[0, 1, 2]],
         };
         assert!(cull_mesh(&side, views(), None).faces.is_empty());
+        // Within a depth: without occlusion the faces at 2.02 and 5 m are seen; a view that
+        // sees only to 3 m keeps the near one, one that sees to 1 m neither.
+        let w = cull_mesh_within(&m, views(), None, 3.0);
+        assert_eq!(w.faces.len(), 1);
+        assert_eq!(w.vertices[0][2], 2.02);
+        assert!(cull_mesh_within(&m, views(), None, 1.0).faces.is_empty());
+        assert_eq!(cull_mesh_within(&m, views(), None, f32::INFINITY), f);
     }
 
     #[test]

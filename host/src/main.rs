@@ -178,6 +178,14 @@ struct MeshArgs {
     /// Worker threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     threads: usize,
+    /// Cut the mesh to what this dataset's frames saw, as `himap map` cuts `mesh.ply` (the
+    /// observed region, the rendered depth of up to 96 of its frames; the level from their
+    /// renders unless --level is given).
+    #[arg(long)]
+    observed: Option<PathBuf>,
+    /// With --observed: the size the map was made at (WxH), as `himap map --resize`.
+    #[arg(long)]
+    resize: Option<String>,
 }
 
 #[derive(Args)]
@@ -199,7 +207,8 @@ struct TrainDemoArgs {
 struct SynthArgs {
     #[arg(long)]
     out: PathBuf,
-    /// room or house.
+    /// room, house or hall (two 8-9 m halls: views beyond 6 m, a walk that grows the default
+    /// box).
     #[arg(long, default_value = "room")]
     scene: String,
     /// Frames (default: 60 for the room, 360 for the house).
@@ -602,8 +611,24 @@ fn mesh(args: MeshArgs) -> anyhow::Result<()> {
         resolution,
         level,
         threads,
+        observed,
+        resize,
     } = args;
-    let (faces, level) = himap::mapper_cli::mesh_saved_map(&map, &out, resolution, level, threads)?;
+    let observed = match observed {
+        Some(dataset) => Some(himap::mapper_cli::ObservedBy {
+            dataset,
+            resize: resize.as_deref().map(parse_size).transpose()?,
+        }),
+        None => None,
+    };
+    let (faces, level) = himap::mapper_cli::mesh_saved_map(
+        &map,
+        &out,
+        resolution,
+        level,
+        threads,
+        observed.as_ref(),
+    )?;
     println!(
         "wrote {} ({faces} faces, level {level:.4} m)",
         out.display()
@@ -673,12 +698,18 @@ fn synth(args: SynthArgs) -> anyhow::Result<()> {
                 s.scene_box.max
             );
         }
-        "house" => {
+        "house" | "hall" => {
+            let kind = if scene == "hall" {
+                himap::synth::house::HouseKind::Hall
+            } else {
+                himap::synth::house::HouseKind::Rooms
+            };
             let opts = himap::synth::house::HouseOptions {
                 frames: frames.unwrap_or(360),
                 width,
                 height,
                 seed,
+                kind,
             };
             let s = himap::synth::house::write_house(&out, &opts)
                 .with_context(|| format!("writing the house sequence to {}", out.display()))?;
@@ -699,7 +730,7 @@ fn synth(args: SynthArgs) -> anyhow::Result<()> {
                 s.mesh_triangles,
             );
         }
-        other => anyhow::bail!("unknown synthetic scene '{other}': use room or house"),
+        other => anyhow::bail!("unknown synthetic scene '{other}': use room, house or hall"),
     }
     Ok(())
 }

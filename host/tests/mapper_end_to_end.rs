@@ -28,7 +28,7 @@ fn map_writes_all_outputs_and_the_loss_goes_down() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_room(dir.path());
     let out = dir.path().join("out");
-    let s = run_map(&options(data, out.clone(), tiny_config())).unwrap();
+    let s = run_map(&options(data.clone(), out.clone(), tiny_config())).unwrap();
     // init at frame 14, one online update at 19
     assert_eq!(s.updates, 2);
     assert_eq!(s.iterations, 40 + 3);
@@ -75,6 +75,26 @@ fn map_writes_all_outputs_and_the_loss_goes_down() {
     assert_eq!(observed.n_samples, whole.n_samples);
     assert!(observed.completion_cm.is_finite() && observed.completion_cm != whole.completion_cm);
     assert!(json["mesh_observed_gt"]["completion_ratio_pct"].is_number());
+    // `himap mesh --observed` on the saved map and the frames gives the run's mesh.ply.
+    let again = dir.path().join("again.ply");
+    let observed = himap::mapper_cli::ObservedBy {
+        dataset: data,
+        resize: None,
+    };
+    let (faces, _) = himap::mapper_cli::mesh_saved_map(
+        &out.join("map.safetensors"),
+        &again,
+        None,
+        None,
+        2,
+        Some(&observed),
+    )
+    .unwrap();
+    assert!(faces > 0);
+    assert_eq!(
+        std::fs::read(&again).unwrap(),
+        std::fs::read(out.join("mesh.ply")).unwrap()
+    );
 }
 
 #[test]

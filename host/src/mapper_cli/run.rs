@@ -774,21 +774,25 @@ struct SurfaceOutputs {
 /// of the ray's length and saves about half the samples.
 pub(super) const SURFACE_RENDER_TRANSMITTANCE: f32 = 1e-4;
 
-/// Extracts the final map's surface: the level from the configuration or from the rendered
-/// depth of the mapped views, the observed region from their depth (`mesh_full.ply`) and the
-/// part some view saw (`mesh.ply`).
-fn write_meshes<B: MapBackend>(
+/// The final map's meshes: the whole observed region's (`mesh_full.ply`) and the part some
+/// mapped view saw (`mesh.ply`), the level they were extracted at and beta. The level comes
+/// from the configuration or from the rendered depth of the views at `ek`; the observed region
+/// and the culling from the depth of up to [`OBSERVED_VIEWS`] of `poses` rendered at a quarter
+/// of `k`. With samples beyond `model.max_depth` (`model.far_samples`) a face counts as seen
+/// only by a view that has it within `max_depth`: the far samples reach a large space's far
+/// walls, but their bins are metres wide there (ARCHITECTURE.md, issue #11).
+pub(crate) fn final_meshes<B: MapBackend>(
     backend: &mut B,
-    opts: &MapOptions,
+    cfg: &Config,
     ek: &Intrinsics,
     k: &Intrinsics,
     poses: &[Pose],
     aabb: Aabb,
-) -> anyhow::Result<SurfaceOutputs>
+    progress: bool,
+) -> anyhow::Result<(crate::mesh::Mesh, crate::mesh::Mesh, f32, f32)>
 where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
-    let cfg = &opts.config;
     let t0 = Instant::now();
     let beta = {
         let mut b = [0.0f32; 1];
@@ -814,14 +818,20 @@ where
     let t_views = t0.elapsed().as_secs_f64();
     let region = observed_region(&views, aabb, 2.0 * cfg.eval.mesh_resolution).unwrap_or(aabb);
     let full = map_mesh(backend, region, cfg.eval.mesh_resolution, level)?;
-    full.write_ply(&opts.out.join("mesh_full.ply"))?;
     let t_full = t0.elapsed().as_secs_f64();
-    let mesh = crate::eval::cull_mesh(
+    let mcfg = backend.layout().config;
+    let within = if mcfg.has_far_segment() {
+        mcfg.max_depth
+    } else {
+        f32::INFINITY
+    };
+    let mesh = crate::eval::cull_mesh_within(
         &full,
         views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
         Some(cfg.eval.observed_margin),
+        within,
     );
-    if opts.progress {
+    if progress {
         let t = t0.elapsed().as_secs_f64();
         eprintln!(
             "mesh: {} faces over the observed region, {} seen by the mapped views (mesh.ply; \
@@ -835,6 +845,26 @@ where
             t - t_full,
         );
     }
+    Ok((full, mesh, level, beta))
+}
+
+/// Extracts the final map's surface: the level from the configuration or from the rendered
+/// depth of the mapped views, the observed region from their depth (`mesh_full.ply`) and the
+/// part some view saw (`mesh.ply`).
+fn write_meshes<B: MapBackend>(
+    backend: &mut B,
+    opts: &MapOptions,
+    ek: &Intrinsics,
+    k: &Intrinsics,
+    poses: &[Pose],
+    aabb: Aabb,
+) -> anyhow::Result<SurfaceOutputs>
+where
+    B::Error: std::error::Error + Send + Sync + 'static,
+{
+    let (full, mesh, level, beta) =
+        final_meshes(backend, &opts.config, ek, k, poses, aabb, opts.progress)?;
+    full.write_ply(&opts.out.join("mesh_full.ply"))?;
     let path = opts.out.join("mesh.ply");
     mesh.write_ply(&path)?;
     Ok(SurfaceOutputs {

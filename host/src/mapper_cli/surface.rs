@@ -123,21 +123,57 @@ pub fn observed_region(
     b.is_valid().then_some(b)
 }
 
+/// `himap mesh --observed`: the frames whose views cut the mesh to what they saw, as `himap
+/// map` cuts `mesh.ply` (the frames the map was made from, read at the size it was made at).
+#[derive(Clone, Debug)]
+pub struct ObservedBy {
+    pub dataset: PathBuf,
+    pub resize: Option<(u32, u32)>,
+}
+
 /// `himap mesh`: extracts the mesh of a saved map at `resolution` (default: its
-/// configuration's) and SDF `level` (default: [`Config::surface_level`]) into `out`.
-/// Returns the face count and the level used.
+/// configuration's) and SDF `level` (default: [`Config::surface_level`]; with `observed`, the
+/// level of the frames' renders, as `himap map`) into `out`, over the whole box or, with
+/// `observed`, cut to what the frames saw ([`super::run::final_meshes`]). Returns the face
+/// count and the level used.
 pub fn mesh_saved_map(
     map: &Path,
     out: &Path,
     resolution: Option<f32>,
     level: Option<f32>,
     threads: usize,
+    observed: Option<&ObservedBy>,
 ) -> anyhow::Result<(usize, f32)> {
-    let (cfg, data) = load_map(map)?;
+    let (mut cfg, data) = load_map(map)?;
     let aabb = data.layout.config.aabb;
     let beta = data.params[Group::Beta as usize][0];
-    let level = level.unwrap_or_else(|| cfg.surface_level(beta));
     let mut backend = ParallelCpuBackend::new(data, cfg.adam_config(), threads)?;
+    if let Some(o) = observed {
+        if let Some(l) = level {
+            cfg.eval.mesh_level = Some(l);
+        }
+        if let Some(r) = resolution {
+            cfg.eval.mesh_resolution = r;
+        }
+        let load = dataset::LoadOptions {
+            resize: o.resize,
+            load_depth: false,
+            ..Default::default()
+        };
+        let ds = dataset::open_with(&o.dataset, &load, &cfg.dataset)?;
+        let k = ds.intrinsics();
+        let ek = {
+            let w = ((k.width as f32 * cfg.eval.scale).round() as u32).max(1);
+            let h = ((k.height as f32 * cfg.eval.scale).round() as u32).max(1);
+            k.resized(w, h)
+        };
+        let poses: Vec<Pose> = (0..ds.len()).map(|i| ds.pose(i)).collect();
+        let (_, mesh, level, _) =
+            super::run::final_meshes(&mut backend, &cfg, &ek, &k, &poses, aabb, false)?;
+        mesh.write_ply(out)?;
+        return Ok((mesh.faces.len(), level));
+    }
+    let level = level.unwrap_or_else(|| cfg.surface_level(beta));
     let mesh = map_mesh(
         &mut backend,
         aabb,
