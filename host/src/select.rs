@@ -155,6 +155,60 @@ impl MapBackend for ParallelCpuBackend {
     fn threads(&self) -> usize {
         ParallelCpuBackend::threads(self)
     }
+
+    fn profile_table(&self, _steps: usize, seconds: f64) -> Option<String> {
+        Some(format_cpu_profile(
+            &self.pass_times(),
+            seconds,
+            self.layout().param_count(),
+        ))
+    }
+}
+
+/// `himap map --profile`'s table for the CPU backend: each pass's milliseconds per step and
+/// share of the mapping time (`seconds`, which holds the steps and the host's work between
+/// them), the renders outside the steps, and how many of the map's `params` Adam visited.
+pub fn format_cpu_profile(t: &crate::backend::CpuPassTimes, seconds: f64, params: usize) -> String {
+    let steps = t.steps.max(1) as f64;
+    let wall_ms = (seconds * 1e3).max(1e-9);
+    let per_step = wall_ms / steps;
+    let ms = |d: std::time::Duration| d.as_secs_f64() * 1e3;
+    let mut s = format!(
+        "  per pass (wall time; {per_step:.1} ms per step over {} steps):\n",
+        t.steps
+    );
+    let mut covered = 0.0;
+    for (name, d) in [
+        ("rays: forward, losses, backward", t.rays),
+        ("gradient sum and finiteness check", t.reduce),
+        ("Adam", t.adam),
+    ] {
+        covered += ms(d);
+        s += &format!(
+            "    {name:<40} {:>10.3} ms {:>6.1} %\n",
+            ms(d) / steps,
+            100.0 * ms(d) / wall_ms
+        );
+    }
+    let rest = (wall_ms - covered).max(0.0);
+    s += &format!(
+        "    {:<40} {:>10.3} ms {:>6.1} %\n",
+        "other (batches, keyframes, host)",
+        rest / steps,
+        100.0 * rest / wall_ms
+    );
+    s += &format!(
+        "  renders outside the steps (evaluation, previews, mostly outside the mapping time): \
+         {:.1} s\n",
+        ms(t.renders) / 1e3
+    );
+    s += &format!(
+        "  Adam visited {:.2} M parameters per step on average, of the map's {:.2} M (every \
+         block rays have ever reached)\n",
+        t.adam_params as f64 / steps / 1e6,
+        params as f64 / 1e6
+    );
+    s
 }
 
 impl MapBackend for VulkanBackend {

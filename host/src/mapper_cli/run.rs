@@ -67,7 +67,7 @@ where
                  included):\n{t}",
                 mapper.iterations()
             ),
-            None => eprintln!("profile: only the Vulkan backend times its passes"),
+            None => eprintln!("profile: this backend does not time its passes"),
         }
     }
     let steps = StepCounts {
