@@ -8,6 +8,7 @@
 //! again.
 
 use std::sync::{Mutex, MutexGuard};
+use std::time::{Duration, Instant};
 
 use himap_core::field::mlp::{MlpLanes, MlpLayout, MlpScratch, LANES, MAX_OUT, MAX_WIDTH};
 use himap_core::field::model::{
@@ -315,6 +316,28 @@ pub struct ParallelCpuBackend {
     /// [`FIXED_SUM_BOUND`]). False where unknown (a fresh backend, after [`Self::data_mut`] or
     /// a write): the check then reads the block.
     bounded: [Vec<bool>; NUM_GROUPS],
+    /// Wall time of the passes so far (`himap map --profile`).
+    times: CpuPassTimes,
+}
+
+/// Wall time of the CPU backend's passes, totals since the backend was built (kept over a
+/// [`ParallelCpuBackend::regrow`]): what `himap map --profile` prints for the CPU.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CpuPassTimes {
+    /// Training and mapping steps' rays: forward, losses and backward into the workers'
+    /// gradient buffers.
+    pub rays: Duration,
+    /// Summing the workers' gradients and checking that Adam leaves every value finite.
+    pub reduce: Duration,
+    /// Adam over the blocks it visits.
+    pub adam: Duration,
+    /// Renders outside the training steps (evaluation, previews, the mesh's views).
+    pub renders: Duration,
+    /// Training and mapping steps timed.
+    pub steps: u64,
+    /// Parameters in the blocks Adam visited, summed over the steps (a block that was ever
+    /// reached is visited on every later step: the pass grows with the area mapped).
+    pub adam_params: u64,
 }
 
 /// Parameters per block of the sum and Adam pass (and of the touched / live flags).
@@ -600,6 +623,57 @@ fn add_scaled_row(dst: &mut [i64], g: f32, xs: &[f32]) {
     add_scaled_row_generic(dst, g, xs)
 }
 
+/// Adam on one block from its summed fixed-point gradients; returns whether every parameter
+/// and moment is within [`AdamHw::state_within_bound`] afterwards. With AVX-512 (DQ + VL) the
+/// same loop compiled for it ([`adam_block_avx512`]): the compiler converts 8 or 16 sums to
+/// f32 at once (`vcvtqq2ps`, round to nearest like `as f32`) and takes the square roots and
+/// quotients in lanes, each lane the scalar operations (no FMA: Rust never contracts), so the
+/// same bits (tested); x86-64-v3 has no vector int64-to-float conversion and runs it mostly
+/// scalar. Adam over every block rays have reached is most of a long walk's step
+/// (ARCHITECTURE.md).
+#[inline(always)]
+fn adam_block(hw: &AdamHw, p: &mut [f32], m: &mut [f32], v: &mut [f32], sum: &[i64]) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if has_avx512_rows() {
+            // SAFETY: the CPU supports AVX-512 F, DQ and VL (checked above); the function is
+            // plain safe Rust.
+            return unsafe { adam_block_avx512(hw, p, m, v, sum) };
+        }
+    }
+    adam_block_generic(hw, p, m, v, sum)
+}
+
+/// [`adam_block`]'s loop.
+#[inline(always)]
+fn adam_block_generic(
+    hw: &AdamHw,
+    p: &mut [f32],
+    m: &mut [f32],
+    v: &mut [f32],
+    sum: &[i64],
+) -> bool {
+    let mut ok = true;
+    for (((p, m), v), &q) in p.iter_mut().zip(m).zip(v).zip(sum) {
+        hw.update(p, m, v, fixed::from_fixed(q));
+        ok &= AdamHw::state_within_bound(*p, *m, *v);
+    }
+    ok
+}
+
+/// [`adam_block_generic`] compiled for AVX-512 F, DQ and VL.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl")]
+fn adam_block_avx512(
+    hw: &AdamHw,
+    p: &mut [f32],
+    m: &mut [f32],
+    v: &mut [f32],
+    sum: &[i64],
+) -> bool {
+    adam_block_generic(hw, p, m, v, sum)
+}
+
 /// Whether this CPU runs [`add_scaled_row_avx512`] (AVX-512 F, DQ and VL; DQ implies F).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
@@ -745,7 +819,13 @@ impl ParallelCpuBackend {
             name: format!("cpu ({n} threads)"),
             store: ImageStore::default(),
             images: Vec::new(),
+            times: CpuPassTimes::default(),
         })
+    }
+
+    /// The passes' wall time so far.
+    pub fn pass_times(&self) -> CpuPassTimes {
+        self.times
     }
 
     /// Adds image slot storage of the given size (zero-filled).
@@ -763,6 +843,7 @@ impl ParallelCpuBackend {
         new.store = self.store;
         new.images = std::mem::take(&mut self.images);
         new.name = std::mem::take(&mut self.name);
+        new.times = self.times;
         *self = new;
         Ok(())
     }
@@ -866,12 +947,17 @@ impl ParallelCpuBackend {
     /// changes, and `stats.rejected` says so (see [`StepStats::rejected`]). Sets `stats.t`.
     fn finish_step(&mut self, stats: &mut StepStats) {
         let t = self.data.t + 1;
+        let t0 = Instant::now();
         let finite = self.reduce_grads(t);
+        let t1 = Instant::now();
+        self.times.reduce += t1 - t0;
         if !stats.rejected && finite {
             self.apply_adam(t);
+            self.times.adam += t1.elapsed();
         } else {
             stats.rejected = true;
         }
+        self.times.steps += 1;
         stats.t = self.data.t;
     }
 
@@ -944,6 +1030,7 @@ impl ParallelCpuBackend {
                 // Untouched: the sum is zero once cleared.
                 let clear = fresh[b] || dirty[b];
                 dirty[b] = fresh[b];
+                self.times.adam_params += p.len() as u64;
                 items.push((p, m, v, sum, clear, fresh[b], self.bounded[g][b], blocks));
             }
             finite &= self.pool.install(|| {
@@ -1028,12 +1115,7 @@ impl ParallelCpuBackend {
                     .for_each(|(fresh, ((((p, m), v), sum), bounded))| {
                         // An untouched block's gradient is zero: the cached zero block.
                         let sum: &[i64] = if fresh { sum } else { &ZERO_BLOCK[..p.len()] };
-                        let mut ok = true;
-                        for (((p, m), v), &q) in p.iter_mut().zip(m).zip(v).zip(sum) {
-                            hw.update(p, m, v, fixed::from_fixed(q));
-                            ok &= AdamHw::state_within_bound(*p, *m, *v);
-                        }
-                        *bounded = ok;
+                        *bounded = adam_block(&hw, p, m, v, sum);
                     });
             });
         }
@@ -1104,6 +1186,7 @@ impl Backend for ParallelCpuBackend {
         loss: &LossConfig,
         results: &mut [RayResult],
     ) -> Result<StepStats, CpuError> {
+        let t0 = Instant::now();
         let mut stats = self.run_job(
             &Rays {
                 rays,
@@ -1111,11 +1194,13 @@ impl Backend for ParallelCpuBackend {
             },
             results,
         )?;
+        self.times.rays += t0.elapsed();
         self.finish_step(&mut stats);
         Ok(stats)
     }
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), CpuError> {
+        let t0 = Instant::now();
         self.run_job(
             &Rays {
                 rays,
@@ -1123,10 +1208,12 @@ impl Backend for ParallelCpuBackend {
             },
             results,
         )?;
+        self.times.renders += t0.elapsed();
         Ok(())
     }
 
     fn render_depth(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), CpuError> {
+        let t0 = Instant::now();
         self.run_job(
             &Rays {
                 rays,
@@ -1134,6 +1221,7 @@ impl Backend for ParallelCpuBackend {
             },
             results,
         )?;
+        self.times.renders += t0.elapsed();
         Ok(())
     }
 
@@ -1194,7 +1282,9 @@ impl Backend for ParallelCpuBackend {
         _next: Option<&MapBatch<'_>>,
     ) -> Result<StepStats, CpuError> {
         let adam = batch.adam(&self.adam)?;
+        let t0 = Instant::now();
         let mut stats = self.accumulate_pixels(batch, results)?;
+        self.times.rays += t0.elapsed();
         let saved = std::mem::replace(&mut self.adam, adam);
         self.finish_step(&mut stats);
         self.adam = saved;
@@ -1281,6 +1371,58 @@ mod tests {
         assert!(be.data().v[g][0].is_nan());
         be.data_mut().v[g][0] = keep;
         assert!(!step(&mut be));
+    }
+
+    /// The pass times count the steps (rejected ones too), the parameters Adam visits (the
+    /// blocks rays reached, not the whole map) and the renders apart from the steps; the
+    /// profile table prints them.
+    #[test]
+    fn pass_times_count_steps_and_visited_parameters() {
+        use himap_core::train::backend::Backend;
+        let config = himap_core::field::model::ModelConfig::paper(himap_core::Aabb {
+            min: [-1.0, -1.0, -1.0],
+            max: [1.0, 1.0, 1.0],
+        });
+        let layout = ModelLayout::new(&config).unwrap();
+        let adam = PerGroup::from_fn(|_| AdamConfig::new(1e-3));
+        let mut be = ParallelCpuBackend::new(ModelData::new(layout, 1).unwrap(), adam, 2).unwrap();
+        assert_eq!(be.pass_times(), CpuPassTimes::default());
+        // a thin bundle near one corner reaches a small part of the box
+        let rays: Vec<Ray> = (0..16)
+            .map(|i| Ray {
+                origin: [-0.95, -0.95, -0.95],
+                dir: [1.0, 0.01 * i as f32, 0.01],
+                target: [0.2, 0.5, 0.8],
+                target_depth: 1.0,
+            })
+            .collect();
+        let loss = LossConfig {
+            lambda_color: 1.0,
+            lambda_depth: 0.0,
+            ray_scale: 1.0 / 16.0,
+            color_to_geometry: true,
+            seed: 0,
+        };
+        let mut res = vec![RayResult::default(); rays.len()];
+        for _ in 0..2 {
+            be.train_step(&rays, &loss, &mut res).unwrap();
+        }
+        let t = be.pass_times();
+        assert_eq!(t.steps, 2);
+        assert_eq!(t.renders, Duration::ZERO);
+        let total = layout.param_count() as u64;
+        assert!(
+            t.adam_params > 0 && t.adam_params < total,
+            "{} of {total}",
+            t.adam_params
+        );
+        be.render(&rays, &mut res).unwrap();
+        assert!(be.pass_times().renders > Duration::ZERO);
+        assert_eq!(be.pass_times().steps, 2);
+        let table = crate::select::format_cpu_profile(&be.pass_times(), 1.0, layout.param_count());
+        for line in ["rays: forward", "Adam", "other", "renders outside"] {
+            assert!(table.contains(line), "{line} missing from\n{table}");
+        }
     }
 
     /// The branch-free conversion equals the core's for every 5th f32 bit pattern below 2048
@@ -1401,6 +1543,75 @@ mod tests {
                 assert_eq!(*p, *d, "g {g} x {x}");
             }
         }
+    }
+
+    /// The AVX-512 Adam block gives the scalar loop's bits: random states and sums over the
+    /// whole exponent range, zeros, subnormals, non-finite states, huge sums (their int64 to
+    /// f32 rounding), every block length up to 40 (the tails) and a full block, over several
+    /// steps and learning rates; the bound flag agrees too.
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn adam_block_lanes_give_the_scalar_bits() {
+        if !has_avx512_rows() {
+            eprintln!("skipped: this CPU has no AVX-512 DQ + VL (the generic loop runs)");
+            return;
+        }
+        let mut rng = himap_core::rng::SplitMix::new(17);
+        let specials = [
+            0.0f32,
+            -0.0,
+            f32::MIN_POSITIVE * 0.25,
+            f32::NAN,
+            f32::INFINITY,
+            -f32::INFINITY,
+            1e30,
+            -3e-20,
+        ];
+        let mut lens: Vec<usize> = (1..=40).collect();
+        lens.push(BLOCK);
+        let mut checked = 0;
+        for t in [1u32, 3, 1000] {
+            for lr in [1e-3f32, 0.1] {
+                let hw = AdamHw::new(&AdamStep::new(&AdamConfig::new(lr), t));
+                for &n in &lens {
+                    let mut f = |k: usize, top: f32| {
+                        if rng.unit() < 0.1 {
+                            specials[k % specials.len()]
+                        } else {
+                            (rng.unit() - 0.5) * 2f32.powf(rng.unit() * top - top / 2.0)
+                        }
+                    };
+                    let p: Vec<f32> = (0..n).map(|k| f(k, 40.0)).collect();
+                    let m: Vec<f32> = (0..n).map(|k| f(k + 1, 40.0)).collect();
+                    let v: Vec<f32> = (0..n).map(|k| f(k + 2, 40.0).abs()).collect();
+                    let sum: Vec<i64> = (0..n)
+                        .map(|k| match k % 7 {
+                            0 => 0,
+                            1 => i64::MAX - k as i64,
+                            2 => i64::MIN + k as i64,
+                            3 => (1i64 << 53) + 1 + k as i64,
+                            _ => (rng.unit() as f64 * 2e12 - 1e12) as i64,
+                        })
+                        .collect();
+                    let (mut p1, mut m1, mut v1) = (p.clone(), m.clone(), v.clone());
+                    let (mut p2, mut m2, mut v2) = (p, m, v);
+                    let ok1 = adam_block_generic(&hw, &mut p1, &mut m1, &mut v1, &sum);
+                    // SAFETY: the CPU supports AVX-512 F, DQ and VL (checked above).
+                    let ok2 = unsafe { adam_block_avx512(&hw, &mut p2, &mut m2, &mut v2, &sum) };
+                    assert_eq!(ok1, ok2, "bound flag, length {n}");
+                    for (a, b) in [(&p1, &p2), (&m1, &m2), (&v1, &v2)] {
+                        // NaN payloads may differ (a NaN state is rejected before Adam)
+                        let same = a
+                            .iter()
+                            .zip(b)
+                            .all(|(x, y)| x.to_bits() == y.to_bits() || x.is_nan() && y.is_nan());
+                        assert!(same, "length {n}, t {t}, lr {lr}");
+                    }
+                    checked += n;
+                }
+            }
+        }
+        assert!(checked > 6 * BLOCK);
     }
 
     /// Wherever the cheap bound settles the finiteness check, the exact check agrees: random
