@@ -1309,6 +1309,17 @@ mod tests {
     use super::*;
     use himap_core::train::adam::{adam_update, AdamConfig};
 
+    /// The paper's model over a 2 m cube on 2 threads, Adam at 1e-3 on every group.
+    fn paper_backend_2m() -> ParallelCpuBackend {
+        let config = himap_core::field::model::ModelConfig::paper(himap_core::Aabb {
+            min: [-1.0, -1.0, -1.0],
+            max: [1.0, 1.0, 1.0],
+        });
+        let layout = ModelLayout::new(&config).unwrap();
+        let adam = PerGroup::from_fn(|_| AdamConfig::new(1e-3));
+        ParallelCpuBackend::new(ModelData::new(layout, 1).unwrap(), adam, 2).unwrap()
+    }
+
     /// The blocks Adam found within the bound skip the next step's check; a write of the
     /// parameters (`write_params`) or of the whole state (`data_mut`) makes the check read
     /// them again: a NaN second moment written after accepted steps (which the forward does
@@ -1317,13 +1328,7 @@ mod tests {
     #[test]
     fn written_state_is_checked_again() {
         use himap_core::train::backend::Backend;
-        let config = himap_core::field::model::ModelConfig::paper(himap_core::Aabb {
-            min: [-1.0, -1.0, -1.0],
-            max: [1.0, 1.0, 1.0],
-        });
-        let layout = ModelLayout::new(&config).unwrap();
-        let adam = PerGroup::from_fn(|_| AdamConfig::new(1e-3));
-        let mut be = ParallelCpuBackend::new(ModelData::new(layout, 1).unwrap(), adam, 2).unwrap();
+        let mut be = paper_backend_2m();
         let rays: Vec<Ray> = (0..64)
             .map(|i| {
                 let a = i as f32 * 0.1;
@@ -1379,13 +1384,7 @@ mod tests {
     #[test]
     fn pass_times_count_steps_and_visited_parameters() {
         use himap_core::train::backend::Backend;
-        let config = himap_core::field::model::ModelConfig::paper(himap_core::Aabb {
-            min: [-1.0, -1.0, -1.0],
-            max: [1.0, 1.0, 1.0],
-        });
-        let layout = ModelLayout::new(&config).unwrap();
-        let adam = PerGroup::from_fn(|_| AdamConfig::new(1e-3));
-        let mut be = ParallelCpuBackend::new(ModelData::new(layout, 1).unwrap(), adam, 2).unwrap();
+        let mut be = paper_backend_2m();
         assert_eq!(be.pass_times(), CpuPassTimes::default());
         // a thin bundle near one corner reaches a small part of the box
         let rays: Vec<Ray> = (0..16)
@@ -1410,6 +1409,7 @@ mod tests {
         let t = be.pass_times();
         assert_eq!(t.steps, 2);
         assert_eq!(t.renders, Duration::ZERO);
+        let layout = *be.layout();
         let total = layout.param_count() as u64;
         assert!(
             t.adam_params > 0 && t.adam_params < total,
