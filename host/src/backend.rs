@@ -604,17 +604,14 @@ pub fn to_fixed_host(g: f32) -> i64 {
 }
 
 /// `dst[i] += to_fixed(g * xs[i])` for every i (a decoder weight row or a grid corner's
-/// channels). With AVX-512 (DQ + VL) 8 contributions at a time through the CPU's own
-/// float-to-int64 conversion ([`add_scaled_row_avx512`]); otherwise one branch-free pass when
-/// every contribution is small and finite (the norm), [`fixed::to_fixed`] otherwise.
+/// channels): one branch-free pass when every contribution is small and finite (the norm),
+/// [`fixed::to_fixed`] otherwise; in AVX2 lanes where the CPU has them. AVX-512's own
+/// float-to-int64 conversion (`vcvtps2qq`) gives the same bits but made the paper step 15 %
+/// slower on an Intel Xeon with AVX-512 (ARCHITECTURE.md), so the rows stay in AVX2 lanes.
 #[inline(always)]
 fn add_scaled_row(dst: &mut [i64], g: f32, xs: &[f32]) {
     #[cfg(target_arch = "x86_64")]
     {
-        if has_avx512_rows() {
-            // SAFETY: the CPU supports AVX-512 F, DQ and VL (DQ implies F; checked above).
-            return unsafe { add_scaled_row_avx512(dst, g, xs) };
-        }
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU supports AVX2 (checked above); the function is plain safe Rust.
             return unsafe { add_scaled_row_avx2(dst, g, xs) };
@@ -635,7 +632,7 @@ fn add_scaled_row(dst: &mut [i64], g: f32, xs: &[f32]) {
 fn adam_block(hw: &AdamHw, p: &mut [f32], m: &mut [f32], v: &mut [f32], sum: &[i64]) -> bool {
     #[cfg(target_arch = "x86_64")]
     {
-        if has_avx512_rows() {
+        if has_avx512_dq_vl() {
             // SAFETY: the CPU supports AVX-512 F, DQ and VL (checked above); the function is
             // plain safe Rust.
             return unsafe { adam_block_avx512(hw, p, m, v, sum) };
@@ -674,50 +671,12 @@ fn adam_block_avx512(
     adam_block_generic(hw, p, m, v, sum)
 }
 
-/// Whether this CPU runs [`add_scaled_row_avx512`] (AVX-512 F, DQ and VL; DQ implies F).
+/// Whether this CPU runs [`adam_block_avx512`] (AVX-512 F, DQ and VL; DQ implies F).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-fn has_avx512_rows() -> bool {
+fn has_avx512_dq_vl() -> bool {
     std::arch::is_x86_feature_detected!("avx512dq")
         && std::arch::is_x86_feature_detected!("avx512vl")
-}
-
-/// [`add_scaled_row`] in AVX-512 lanes, every case of [`fixed::to_fixed`] branch-free: the
-/// product `g * x` (the same f32 product), NaN lanes masked to 0, clamped to
-/// `+-MAX_CONTRIBUTION` (`min`/`max` of a non-NaN value are exact), scaled by `2^40` (a power
-/// of two: exact, at most 2^62), then `vcvtps2qq` with round-to-nearest-even given explicitly
-/// (the value is exact, so this is `to_fixed`'s rounding of the same number). Masked loads and
-/// stores take the tail of a row. Tested equal to `to_fixed` on random, tie, huge, subnormal
-/// and non-finite contributions.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl")]
-fn add_scaled_row_avx512(dst: &mut [i64], g: f32, xs: &[f32]) {
-    use std::arch::x86_64::*;
-    let n = dst.len().min(xs.len());
-    let gv = _mm256_set1_ps(g);
-    let hi = _mm256_set1_ps(fixed::MAX_CONTRIBUTION);
-    let lo = _mm256_set1_ps(-fixed::MAX_CONTRIBUTION);
-    let scale = _mm256_set1_ps(fixed::SCALE);
-    let mut i = 0;
-    while i < n {
-        let left = n - i;
-        let m: __mmask8 = if left >= 8 { 0xff } else { (1u8 << left) - 1 };
-        // SAFETY: the mask enables only lanes i..i + min(8, n - i), all within both slices;
-        // masked-off lanes are neither read nor written.
-        unsafe {
-            let x = _mm256_maskz_loadu_ps(m, xs.as_ptr().add(i));
-            let p = _mm256_mul_ps(gv, x);
-            let ordered = _mm256_cmp_ps_mask::<_CMP_ORD_Q>(p, p) & m;
-            let c = _mm256_max_ps(_mm256_min_ps(p, hi), lo);
-            let q = _mm512_maskz_cvt_roundps_epi64::<
-                { _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC },
-            >(ordered, _mm256_mul_ps(c, scale));
-            let d = dst.as_mut_ptr().add(i);
-            let sum = _mm512_add_epi64(_mm512_maskz_loadu_epi64(m, d), q);
-            _mm512_mask_storeu_epi64(d, m, sum);
-        }
-        i += 8;
-    }
 }
 
 /// [`add_scaled_row`] in AVX2 lanes, one pass: 8 products `g * x` (the same f32 products),
@@ -1450,20 +1409,6 @@ mod tests {
         }
     }
 
-    /// The AVX-512 row conversion equals the core's (see [`check_row_conversion`]).
-    #[test]
-    fn avx512_rows_add_the_core_conversions() {
-        #[cfg(target_arch = "x86_64")]
-        {
-            if !has_avx512_rows() {
-                eprintln!("skipped: this CPU has no AVX-512 DQ/VL (the AVX2 path is tested)");
-                return;
-            }
-            // SAFETY: checked above that the CPU has AVX-512 DQ and VL.
-            check_row_conversion(|d, g, x| unsafe { add_scaled_row_avx512(d, g, x) });
-        }
-    }
-
     /// The AVX2 row conversion equals the core's (see [`check_row_conversion`]).
     #[test]
     fn avx2_rows_add_the_core_conversions() {
@@ -1552,7 +1497,7 @@ mod tests {
     #[test]
     #[cfg(target_arch = "x86_64")]
     fn adam_block_lanes_give_the_scalar_bits() {
-        if !has_avx512_rows() {
+        if !has_avx512_dq_vl() {
             eprintln!("skipped: this CPU has no AVX-512 DQ + VL (the generic loop runs)");
             return;
         }
