@@ -176,6 +176,25 @@ pub trait GradSink {
             i += 1;
         }
     }
+
+    /// `add_scaled(offsets[k], gs[k], xs, n)` for each `k` in order: the corners of one
+    /// interpolated read, which share their row of values. A backend may override it to add
+    /// the rows together (a narrow grid's neighbouring corners are one contiguous run); the
+    /// contributions, and hence the integer sums, are the same.
+    #[inline(always)]
+    fn add_scaled_rows<const R: usize>(
+        &mut self,
+        offsets: [usize; R],
+        gs: [f32; R],
+        xs: &[f32; mlp::MAX_WIDTH],
+        n: usize,
+    ) {
+        let mut k = 0;
+        while k < R {
+            self.add_scaled(offsets[k], gs[k], xs, n);
+            k += 1;
+        }
+    }
 }
 
 /// A sink that drops everything (forward-only uses of a backward, and tests).

@@ -486,6 +486,100 @@ impl ModelGradSink for WorkerSink<'_> {
             }
         }
     }
+
+    #[inline(always)]
+    fn add_scaled_rows<const R: usize>(
+        &mut self,
+        group: Group,
+        offsets: [usize; R],
+        gs: [f32; R],
+        xs: &[f32; MAX_WIDTH],
+        n: usize,
+    ) {
+        let gi = group as usize;
+        if n == 2 && add_pair_rows(&mut self.grads[gi], &offsets, &gs, [xs[0], xs[1]]) {
+            let t = &mut self.touched[gi];
+            for pair in offsets.chunks_exact(2) {
+                t[pair[0] >> BLOCK_SHIFT] = true;
+                t[(pair[0] + 3) >> BLOCK_SHIFT] = true;
+            }
+            return;
+        }
+        for (&o, &g) in offsets.iter().zip(&gs) {
+            self.add_scaled(group, o, g, xs, n);
+        }
+    }
+}
+
+/// The rows of a 2-channel grid's interpolated read (`R` of 2 or 4 corners) when they come
+/// in neighbouring pairs (`offsets[2j + 1] == offsets[2j] + 2`, true of every line and plane
+/// read of a narrow grid): each pair is 4 contiguous sums, `dst[o..o + 4] += [to_fixed(g0 *
+/// x0), to_fixed(g0 * x1), to_fixed(g1 * x0), to_fixed(g1 * x1)]`, the same products and
+/// conversions as one row at a time (in AVX2 lanes when the CPU has them). False, having
+/// added nothing, when the rows are not such pairs or do not fit in `dst`.
+#[inline(always)]
+fn add_pair_rows<const R: usize>(
+    dst: &mut [i64],
+    offsets: &[usize; R],
+    gs: &[f32; R],
+    xs: [f32; 2],
+) -> bool {
+    if R == 0 || !R.is_multiple_of(2) {
+        return false;
+    }
+    for pair in offsets.chunks_exact(2) {
+        let fits = pair[0].checked_add(4).is_some_and(|end| end <= dst.len());
+        if !fits || pair[1] != pair[0] + 2 {
+            return false;
+        }
+    }
+    for (pair, g) in offsets.chunks_exact(2).zip(gs.chunks_exact(2)) {
+        let [g0, g1] = [g[0], g[1]];
+        let products = [g0 * xs[0], g0 * xs[1], g1 * xs[0], g1 * xs[1]];
+        let run = &mut dst[pair[0]..pair[0] + 4];
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked above).
+            unsafe { add_four_avx2(run, products) };
+            continue;
+        }
+        for (d, &p) in run.iter_mut().zip(&products) {
+            *d = d.wrapping_add(to_fixed_host(p));
+        }
+    }
+    true
+}
+
+/// `dst[i] += to_fixed(products[i])` for 4 contiguous sums: the magic-number conversion in
+/// AVX2 lanes when all 4 are below [`SMALL`] in magnitude (NaN is not), else
+/// [`to_fixed_host`] one at a time.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn add_four_avx2(dst: &mut [i64], products: [f32; 4]) {
+    use std::arch::x86_64::*;
+    let Some(dst) = dst.get_mut(..4) else {
+        return;
+    };
+    // SAFETY: `products` holds 4 f32 and `dst` 4 i64 (checked above): the unaligned loads and
+    // the store stay within them.
+    unsafe {
+        let p = _mm_loadu_ps(products.as_ptr());
+        let abs = _mm_castsi128_ps(_mm_set1_epi32(i32::MAX));
+        let ok = _mm_cmplt_ps(_mm_and_ps(p, abs), _mm_set1_ps(SMALL));
+        if _mm_movemask_ps(ok) == 0xf {
+            let y = _mm256_add_pd(_mm256_cvtps_pd(p), _mm256_set1_pd(MAGIC));
+            let q = _mm256_sub_epi64(
+                _mm256_castpd_si256(y),
+                _mm256_set1_epi64x(MAGIC.to_bits() as i64),
+            );
+            let d = dst.as_mut_ptr().cast::<__m256i>();
+            _mm256_storeu_si256(d, _mm256_add_epi64(_mm256_loadu_si256(d), q));
+            return;
+        }
+    }
+    for (d, &p) in dst.iter_mut().zip(&products) {
+        *d = d.wrapping_add(to_fixed_host(p));
+    }
 }
 
 /// The window's RGBA8 slot images with the CPU's cache hint: the warping loss names the
@@ -1407,6 +1501,70 @@ mod tests {
         for g in [f32::NAN, f32::INFINITY, -f32::INFINITY, 2048.0, -3e6, 1e30] {
             assert_eq!(to_fixed_host(g), fixed::to_fixed(g), "{g}");
         }
+    }
+
+    /// A narrow grid's corner pairs added together ([`add_pair_rows`]) give the sums of one
+    /// row at a time with the core's conversion, for 2 and 4 corners, random, tiny, huge and
+    /// non-finite values and weights; rows that are not neighbouring pairs or do not fit are
+    /// refused untouched.
+    #[test]
+    fn pair_rows_add_the_core_conversions() {
+        let mut rng = himap_core::rng::SplitMix::new(5);
+        let specials = [
+            0.0f32,
+            -0.0,
+            f32::NAN,
+            f32::INFINITY,
+            -f32::INFINITY,
+            2048.0,
+            -2047.9,
+            1e30,
+            0.5 * fixed::INV_SCALE,
+            -1.5 * fixed::INV_SCALE,
+            f32::MIN_POSITIVE * 0.5,
+        ];
+        let value = |rng: &mut himap_core::rng::SplitMix| {
+            if rng.unit() < 0.15 {
+                specials[(rng.unit() * specials.len() as f32) as usize % specials.len()]
+            } else {
+                (rng.unit() - 0.5) * 2f32.powi((rng.unit() * 50.0) as i32 - 40)
+            }
+        };
+        let reference = |dst: &mut [i64], offsets: &[usize], gs: &[f32], xs: [f32; 2]| {
+            for (&o, &g) in offsets.iter().zip(gs) {
+                for (c, &x) in xs.iter().enumerate() {
+                    dst[o + c] = dst[o + c].wrapping_add(fixed::to_fixed(g * x));
+                }
+            }
+        };
+        for trial in 0..3000 {
+            let xs = [value(&mut rng), value(&mut rng)];
+            let start: Vec<i64> = (0..64).map(|i| (i as i64 - 30) << 40).collect();
+            let a = (rng.unit() * 20.0) as usize * 2;
+            let b = a + 2 + (rng.unit() * 10.0) as usize * 2;
+            let (mut got, mut want) = (start.clone(), start.clone());
+            if trial % 2 == 0 {
+                let gs = [value(&mut rng), value(&mut rng)];
+                assert!(add_pair_rows(&mut got, &[a, a + 2], &gs, xs));
+                reference(&mut want, &[a, a + 2], &gs, xs);
+            } else {
+                let gs = [
+                    value(&mut rng),
+                    value(&mut rng),
+                    value(&mut rng),
+                    value(&mut rng),
+                ];
+                let offsets = [a, a + 2, b, b + 2];
+                assert!(add_pair_rows(&mut got, &offsets, &gs, xs));
+                reference(&mut want, &offsets, &gs, xs);
+            }
+            assert_eq!(got, want, "trial {trial}: xs {xs:?}");
+        }
+        let mut dst = vec![7i64; 8];
+        assert!(!add_pair_rows(&mut dst, &[0, 3], &[1.0, 1.0], [1.0, 1.0]));
+        assert!(!add_pair_rows(&mut dst, &[6, 8], &[1.0, 1.0], [1.0, 1.0]));
+        assert!(!add_pair_rows(&mut dst, &[0, 2, 1], &[1.0; 3], [1.0, 1.0]));
+        assert_eq!(dst, vec![7i64; 8]);
     }
 
     /// The AVX2 row conversion equals the core's (see [`check_row_conversion`]).

@@ -1231,12 +1231,9 @@ fn level_rows_backward<S: GradSink>(
     nc: usize,
 ) {
     let [fx, fy, fz] = f;
-    sink.add_scaled(k.x[0], 1.0 - fx, &gl[0], nc);
-    sink.add_scaled(k.x[1], fx, &gl[0], nc);
-    sink.add_scaled(k.y[0], 1.0 - fy, &gl[1], nc);
-    sink.add_scaled(k.y[1], fy, &gl[1], nc);
-    sink.add_scaled(k.z[0], 1.0 - fz, &gl[2], nc);
-    sink.add_scaled(k.z[1], fz, &gl[2], nc);
+    sink.add_scaled_rows(k.x, [1.0 - fx, fx], &gl[0], nc);
+    sink.add_scaled_rows(k.y, [1.0 - fy, fy], &gl[1], nc);
+    sink.add_scaled_rows(k.z, [1.0 - fz, fz], &gl[2], nc);
     plane_rows_backward(sink, k.xy, &gl[3], nc, fx, fy);
     plane_rows_backward(sink, k.xz, &gl[4], nc, fx, fz);
     plane_rows_backward(sink, k.yz, &gl[5], nc, fy, fz);
@@ -1253,10 +1250,7 @@ fn plane_rows_backward<S: GradSink>(
     fb: f32,
 ) {
     let (ua, ub) = (1.0 - fa, 1.0 - fb);
-    sink.add_scaled(p[0], ua * ub, gm, nc);
-    sink.add_scaled(p[1], fa * ub, gm, nc);
-    sink.add_scaled(p[2], ua * fb, gm, nc);
-    sink.add_scaled(p[3], fa * fb, gm, nc);
+    sink.add_scaled_rows(p, [ua * ub, fa * ub, ua * fb, fa * fb], gm, nc);
 }
 
 /// Adds the four bilinear-corner contributions of `gm` = dL/d(plane value) for channel `c`.

@@ -514,6 +514,24 @@ pub trait ModelGradSink {
             i += 1;
         }
     }
+
+    /// `add_scaled(group, offsets[k], gs[k], xs, n)` for each `k` in order (see
+    /// [`GradSink::add_scaled_rows`]).
+    #[inline(always)]
+    fn add_scaled_rows<const R: usize>(
+        &mut self,
+        group: Group,
+        offsets: [usize; R],
+        gs: [f32; R],
+        xs: &[f32; MAX_WIDTH],
+        n: usize,
+    ) {
+        let mut k = 0;
+        while k < R {
+            self.add_scaled(group, offsets[k], gs[k], xs, n);
+            k += 1;
+        }
+    }
 }
 
 /// Adapts a [`ModelGradSink`] to one group's [`GradSink`].
@@ -533,6 +551,17 @@ impl<S: ModelGradSink> GradSink for GroupSink<'_, S> {
     #[inline(always)]
     fn add_scaled(&mut self, offset: usize, g: f32, xs: &[f32; MAX_WIDTH], n: usize) {
         self.inner.add_scaled(self.group, offset, g, xs, n);
+    }
+
+    #[inline(always)]
+    fn add_scaled_rows<const R: usize>(
+        &mut self,
+        offsets: [usize; R],
+        gs: [f32; R],
+        xs: &[f32; MAX_WIDTH],
+        n: usize,
+    ) {
+        self.inner.add_scaled_rows(self.group, offsets, gs, xs, n);
     }
 }
 

@@ -45,9 +45,41 @@ pub fn save_map_with(
     for (k, v) in extra {
         meta.insert(k.to_string(), v.clone());
     }
-    let bytes = safetensors::serialize(views, Some(meta))
+    let mut bytes = safetensors::serialize(views, Some(meta))
         .with_context(|| format!("serialising {}", path.display()))?;
+    canonical_header(&mut bytes);
     crate::atomic::write_bytes_atomic(path, &bytes)
+}
+
+/// Rewrites a serialised safetensors file's JSON header with its keys sorted, so that the
+/// same map gives the same bytes (the crate takes the metadata as a `HashMap`, whose order
+/// changes from run to run). The sorted header holds the same entries, so it has the same
+/// length; where it would not (another JSON layout), the file is left as it is.
+fn canonical_header(bytes: &mut [u8]) {
+    let Some(len) = bytes
+        .get(..8)
+        .map(|b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])))
+    else {
+        return;
+    };
+    let Some(end) = usize::try_from(len).ok().and_then(|n| n.checked_add(8)) else {
+        return;
+    };
+    let Some(header) = bytes.get_mut(8..end) else {
+        return;
+    };
+    let text = String::from_utf8_lossy(header);
+    let body = text.trim_end_matches(' ');
+    // serde_json's `Value` keeps object keys in a BTreeMap: serialising it sorts them.
+    let Ok(value) = serde_json::from_str::<serde_json::Value>(body) else {
+        return;
+    };
+    let Ok(sorted) = serde_json::to_string(&value) else {
+        return;
+    };
+    if sorted.len() == body.len() {
+        header[..sorted.len()].copy_from_slice(sorted.as_bytes());
+    }
 }
 
 /// Reads a map written by [`save_map`]: its configuration and model data.
@@ -111,4 +143,53 @@ pub fn load_map_bytes(
     }
     data.t = t;
     Ok((config, data, meta))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The same map written twice gives the same bytes (the metadata's order is fixed), and
+    /// the file reads back to the same configuration, box, step count and tensors.
+    #[test]
+    fn saving_the_same_map_twice_gives_the_same_bytes() {
+        let mut config = crate::dump::tiny_map_config();
+        config.model.geometry.cell_sizes = vec![0.64, 0.32];
+        config.model.appearance.cell_sizes = vec![0.32];
+        let aabb = Aabb::new([-1.0; 3], [1.0; 3]);
+        let mut data = ModelData::new(
+            ModelLayout::new(&config.model_config(aabb).unwrap()).unwrap(),
+            3,
+        )
+        .unwrap();
+        data.t = 17;
+        let dir = std::env::temp_dir().join(format!("himap-persist-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let extra = [
+            ("a", "1".to_string()),
+            ("z", "2".to_string()),
+            ("m", "3".to_string()),
+        ];
+        let mut files = Vec::new();
+        for k in 0..4 {
+            let path = dir.join(format!("map{k}.safetensors"));
+            save_map_with(&path, &config, &data, &extra).unwrap();
+            files.push(std::fs::read(&path).unwrap());
+        }
+        assert!(
+            files.iter().all(|f| f == &files[0]),
+            "the bytes differ between writes"
+        );
+        let (read_config, read, meta) = load_map_bytes(&files[0]).unwrap();
+        assert_eq!(read_config.to_toml(), config.to_toml());
+        assert_eq!(read.t, 17);
+        assert_eq!(meta.get("m").map(String::as_str), Some("3"));
+        for g in Group::ALL {
+            let i = g as usize;
+            assert_eq!(read.params[i], data.params[i]);
+            assert_eq!(read.m[i], data.m[i]);
+            assert_eq!(read.v[i], data.v[i]);
+        }
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }
