@@ -133,6 +133,25 @@ impl AdamHw {
         Self::state_within_bound(param, m, v) & Self::grad_within_bound(grad)
     }
 
+    /// Whether this step's constants let [`adam_tiny`] stand in for [`Self::update`] where
+    /// [`adam_tiny_allowed`] holds: finite decays with `1 - beta1 >= 0` (so that the product
+    /// of `1 - beta1` and a zero gradient is `+0`) and `beta2 >= 0`, `eps > 0` and finite, a
+    /// positive bias correction and a finite step size.
+    #[inline(always)]
+    pub fn tiny_applies(&self) -> bool {
+        self.beta1.is_finite()
+            && self.one_minus_beta1 >= 0.0
+            && self.one_minus_beta1.is_finite()
+            && self.beta2 >= 0.0
+            && self.beta2.is_finite()
+            && self.one_minus_beta2.is_finite()
+            && self.eps > 0.0
+            && self.eps.is_finite()
+            && self.sqrt_bc2 > 0.0
+            && self.sqrt_bc2.is_finite()
+            && self.step_size.is_finite()
+    }
+
     /// The parameter and moment part of [`Self::within_bound`].
     #[inline(always)]
     pub fn state_within_bound(param: f32, m: f32, v: f32) -> bool {
@@ -735,7 +754,9 @@ fn adam_block(hw: &AdamHw, p: &mut [f32], m: &mut [f32], v: &mut [f32], sum: &[i
     adam_block_generic(hw, p, m, v, sum)
 }
 
-/// [`adam_block`]'s loop.
+/// [`adam_block`]'s loop, in runs of 16 parameters: a run whose first moments are all zero
+/// or at least [`TINY_M`] in magnitude takes [`AdamHw::update`] (in lanes); a run holding a
+/// tiny one takes [`adam_tiny_run`] (in lanes). Same bits either way.
 #[inline(always)]
 fn adam_block_generic(
     hw: &AdamHw,
@@ -744,12 +765,161 @@ fn adam_block_generic(
     v: &mut [f32],
     sum: &[i64],
 ) -> bool {
+    let n = p.len().min(m.len()).min(v.len()).min(sum.len());
+    let steady = hw.tiny_applies();
     let mut ok = true;
-    for (((p, m), v), &q) in p.iter_mut().zip(m).zip(v).zip(sum) {
-        hw.update(p, m, v, fixed::from_fixed(q));
-        ok &= AdamHw::state_within_bound(*p, *m, *v);
+    let mut i = 0;
+    while i < n {
+        let e = (i + 16).min(n);
+        let (p, m, v, sum) = (&mut p[i..e], &mut m[i..e], &mut v[i..e], &sum[i..e]);
+        let tiny = steady
+            && m.iter()
+                .fold(false, |t, &x| t | (x.abs() < TINY_M && x != 0.0));
+        if !tiny {
+            for (((p, m), v), &q) in p.iter_mut().zip(m.iter_mut()).zip(v.iter_mut()).zip(sum) {
+                hw.update(p, m, v, fixed::from_fixed(q));
+                ok &= AdamHw::state_within_bound(*p, *m, *v);
+            }
+        } else {
+            ok &= adam_tiny_run(hw, p, m, v, sum);
+        }
+        i = e;
     }
     ok
+}
+
+/// First moments below this magnitude (2^-100, and not zero) make a run of [`adam_block`]
+/// try [`adam_tiny`]: with them the f32 update may pass through subnormal numbers, which
+/// x86 CPUs handle in microcode at 20-25 times the cost (a block the camera has left decays
+/// `m` by 0.9 per step through the subnormal range for ~160 steps before it reaches zero;
+/// ARCHITECTURE.md).
+const TINY_M: f32 = f32::from_bits((127 - 100) << 23);
+
+/// A run of [`adam_block_generic`] (at most 16 parameters) holding a tiny first moment:
+/// where [`adam_tiny_allowed`] holds, [`adam_tiny`]'s moments and the parameter as it was;
+/// elsewhere [`AdamHw::update`]. The update runs in lanes over the whole run on stand-in values
+/// (`p = 1`, `m = 0`, `v = 1`, no gradient) where the tiny form applies, passed through
+/// [`std::hint::black_box`]: with the actual values in reach the compiler computes the update
+/// on them too and selects afterwards, and a subnormal moment costs it microcode assists
+/// (the whole point of the tiny form). The bits of [`AdamHw::update`] on every parameter.
+#[inline(always)]
+fn adam_tiny_run(hw: &AdamHw, p: &mut [f32], m: &mut [f32], v: &mut [f32], sum: &[i64]) -> bool {
+    const R: usize = 16;
+    let n = p.len().min(m.len()).min(v.len()).min(sum.len()).min(R);
+    let mut allowed = [false; R];
+    let (mut mt, mut vt) = ([0.0f32; R], [0.0f32; R]);
+    let (mut pu, mut mu, mut vu, mut qu) = ([1.0f32; R], [0.0f32; R], [1.0f32; R], [0i64; R]);
+    for l in 0..n {
+        let a = adam_tiny_allowed(hw, p[l], m[l], v[l], sum[l]);
+        allowed[l] = a;
+        let (mut m1, mut v1) = (m[l], v[l]);
+        adam_tiny(hw, &mut m1, &mut v1);
+        mt[l] = m1;
+        vt[l] = v1;
+        if !a {
+            pu[l] = p[l];
+            mu[l] = m[l];
+            vu[l] = v[l];
+            qu[l] = sum[l];
+        }
+    }
+    let (mut pu, mut mu, mut vu, qu) = std::hint::black_box((pu, mu, vu, qu));
+    for l in 0..R {
+        hw.update(&mut pu[l], &mut mu[l], &mut vu[l], fixed::from_fixed(qu[l]));
+    }
+    let mut ok = true;
+    for l in 0..n {
+        if !allowed[l] {
+            p[l] = pu[l];
+        }
+        m[l] = if allowed[l] { mt[l] } else { mu[l] };
+        v[l] = if allowed[l] { vt[l] } else { vu[l] };
+        ok &= AdamHw::state_within_bound(p[l], m[l], v[l]);
+    }
+    ok
+}
+
+/// Whether [`adam_tiny`] gives [`AdamHw::update`]'s bits for this parameter (the step
+/// constants checked by [`AdamHw::tiny_applies`]): no gradient (`q == 0`), a finite first
+/// moment, a normal finite second moment (`2^-100 <= v < inf`) and a finite parameter that
+/// the update cannot move: `|step * m' / denom|` is at most `|step| |m| / eps` (`|m'| <= |m|`,
+/// `denom >= eps`) plus the subnormal rounding of the two operations (2^-149 each, the second
+/// divided by at least `eps`), and where twice that is below `|p| 2^-26`, a quarter of the
+/// parameter's unit in the last place or less, the f32 subtraction rounds back to `p`. Float
+/// operations on normal f64 numbers only (the f32 values are widened from their bits).
+#[inline(always)]
+fn adam_tiny_allowed(hw: &AdamHw, p: f32, m: f32, v: f32, q: i64) -> bool {
+    let exp = |x: f32| (x.to_bits() >> 23) & 0xff;
+    let eps = hw.eps as f64;
+    let bound = 2.0
+        * ((hw.step_size as f64).abs() * f32_as_f64_exact(m).abs() / eps + TWO_POW_M149 / eps)
+        + TWO_POW_M149;
+    (q == 0)
+        & (exp(m) != 0xff)
+        & (exp(p) != 0xff)
+        & (v.to_bits() >= MIN_V_BITS)
+        & (v.to_bits() < f32::INFINITY.to_bits())
+        & (bound < f32_as_f64_exact(p).abs() * TWO_POW_M26)
+}
+
+/// `v >= 2^-100` for a non-negative f32, as bits (sign clear, at least those of 2^-100).
+const MIN_V_BITS: u32 = (127 - 100) << 23;
+
+/// The moments of [`AdamHw::update`] with a zero gradient where [`adam_tiny_allowed`] holds
+/// (the parameter stays): `m' = beta1 * m + (1 - beta1) * 0`, the product rounded to f32 from
+/// its exact f64 value without a subnormal float operation ([`round_f64_to_f32`]), and the
+/// `+ (+0)` turning a `-0` product into `+0`; `v' = beta2 * v + (1 - beta2) * 0 * 0` as the
+/// same f32 expression (normal numbers). Branch-free, for lanes.
+#[inline(always)]
+fn adam_tiny(hw: &AdamHw, m: &mut f32, v: &mut f32) {
+    let r = round_f64_to_f32(hw.beta1 as f64 * f32_as_f64_exact(*m));
+    let g = fixed::from_fixed(0);
+    // `r + (+0)`: `r`, or `+0` for either zero (a bit mask, not an addition).
+    let zero = (r.to_bits() << 1) == 0;
+    *m = f32::from_bits(r.to_bits() & if zero { 0 } else { u32::MAX });
+    *v = hw.beta2 * *v + hw.one_minus_beta2 * g * g;
+}
+
+/// 2^-149 (the f32 subnormal quantum), 2^-26 and 2^149 (exact, from their bits).
+const TWO_POW_M149: f64 = f64::from_bits((1023 - 149) << 52);
+const TWO_POW_M26: f64 = f64::from_bits((1023 - 26) << 52);
+const TWO_POW_149: f64 = f64::from_bits((1023 + 149) << 52);
+
+/// `x` as f64 from its bits, exact for every finite `x` (a subnormal one through integer
+/// arithmetic, not through a float conversion of a subnormal input); infinities and NaN give
+/// some finite value. Branch-free.
+#[inline(always)]
+fn f32_as_f64_exact(x: f32) -> f64 {
+    let bits = x.to_bits();
+    let exp = (bits >> 23) & 0xff;
+    let mant = (bits & 0x7f_ffff) as u64;
+    // Subnormal: mant * 2^-149; normal: (2^23 + mant) * 2^(exp - 150).
+    let (whole, e) = if exp == 0 {
+        (mant, 1)
+    } else {
+        (mant | 0x80_0000, exp)
+    };
+    let scale = f64::from_bits(((1023 + e as u64) - 150) << 52);
+    let magnitude = whole as f64 * scale;
+    f64::from_bits(magnitude.to_bits() | ((bits as u64 >> 31) << 63))
+}
+
+/// The f32 nearest to a finite `y` (ties to even), as IEEE rounds an exact result: a normal
+/// result through the conversion, a subnormal one by rounding `|y| 2^149` to a whole number
+/// (exact in f64), so that no float operation produces a subnormal. Branch-free.
+#[inline(always)]
+fn round_f64_to_f32(y: f64) -> f32 {
+    let a = y.abs();
+    let normal = a >= f32::MIN_POSITIVE as f64;
+    // The conversion only sees a normal result (1.0 stands in for the others).
+    let wide = (if normal { y } else { 1.0 }) as f32;
+    let k = ((if normal { 0.0 } else { a }) * TWO_POW_149).round_ties_even() as u32;
+    let narrow = f32::from_bits(k | ((y.to_bits() >> 63) as u32) << 31);
+    if normal {
+        wide
+    } else {
+        narrow
+    }
 }
 
 /// [`adam_block_generic`] compiled for AVX-512 F, DQ and VL.
@@ -1715,6 +1885,152 @@ mod tests {
             }
         }
         assert!(checked > 6 * BLOCK);
+    }
+
+    /// Runs holding tiny and subnormal first moments (the blocks a walk leaves behind) give
+    /// [`AdamHw::update`]'s bits one parameter at a time, in the generic loop and in AVX-512
+    /// lanes: moments across the subnormal range and its edges (both signs, zeros), second
+    /// moments above and below 2^-100 and subnormal, parameters from huge to zero (where the
+    /// update may move them), zero and nonzero gradients, several steps and rates.
+    #[test]
+    fn adam_tiny_moments_give_the_update_bits() {
+        let mut rng = himap_core::rng::SplitMix::new(23);
+        let sub = |k: u32| f32::from_bits(k);
+        let ms = [
+            0.0f32,
+            -0.0,
+            sub(1),
+            sub(2),
+            sub(3),
+            -sub(5),
+            sub(0x7f_ffff),
+            f32::MIN_POSITIVE,
+            -f32::MIN_POSITIVE * 1.1,
+            1e-39,
+            -3e-38,
+            1e-36,
+            2e-32,
+            7.8e-31,
+            8e-31,
+            1e-20,
+            1e-8,
+            f32::NAN,
+            f32::INFINITY,
+        ];
+        let vs = [
+            1e-6f32,
+            1e-20,
+            7.888_609e-31,
+            7.9e-31,
+            7.8e-31,
+            1e-40,
+            0.0,
+            1e30,
+            f32::NAN,
+        ];
+        let ps = [
+            1e-2f32,
+            -0.5,
+            1e-12,
+            1e-30,
+            1e-40,
+            0.0,
+            -0.0,
+            3e38,
+            f32::INFINITY,
+        ];
+        let mut checked = 0;
+        for t in [1u32, 7, 2000] {
+            for lr in [1e-3f32, 1e-2, 0.3] {
+                let hw = AdamHw::new(&AdamStep::new(&AdamConfig::new(lr), t));
+                for trial in 0..40 {
+                    let n = if trial % 5 == 0 { BLOCK } else { 1 + trial * 7 };
+                    let mut pick = |set: &[f32], rest: f32| {
+                        if rng.unit() < 0.7 {
+                            set[(rng.unit() * set.len() as f32) as usize % set.len()]
+                        } else {
+                            rest * (rng.unit() - 0.5)
+                        }
+                    };
+                    let m: Vec<f32> = (0..n).map(|_| pick(&ms, 1e-37)).collect();
+                    let v: Vec<f32> = (0..n).map(|_| pick(&vs, 1e-4).abs()).collect();
+                    let p: Vec<f32> = (0..n).map(|_| pick(&ps, 0.1)).collect();
+                    let sum: Vec<i64> = (0..n)
+                        .map(|k| {
+                            if k % 9 == 4 {
+                                (rng.unit() * 4e3) as i64 - 2000
+                            } else {
+                                0
+                            }
+                        })
+                        .collect();
+                    let (mut p0, mut m0, mut v0) = (p.clone(), m.clone(), v.clone());
+                    let mut ok0 = true;
+                    for k in 0..n {
+                        hw.update(
+                            &mut p0[k],
+                            &mut m0[k],
+                            &mut v0[k],
+                            fixed::from_fixed(sum[k]),
+                        );
+                        ok0 &= AdamHw::state_within_bound(p0[k], m0[k], v0[k]);
+                    }
+                    let same = |a: &[f32], b: &[f32]| {
+                        a.iter()
+                            .zip(b)
+                            .all(|(x, y)| x.to_bits() == y.to_bits() || x.is_nan() && y.is_nan())
+                    };
+                    let (mut p1, mut m1, mut v1) = (p.clone(), m.clone(), v.clone());
+                    let ok1 = adam_block_generic(&hw, &mut p1, &mut m1, &mut v1, &sum);
+                    assert_eq!(ok0, ok1, "bound flag, t {t}, lr {lr}, trial {trial}");
+                    assert!(
+                        same(&p0, &p1) && same(&m0, &m1) && same(&v0, &v1),
+                        "t {t} lr {lr} trial {trial}"
+                    );
+                    if has_avx512_dq_vl() {
+                        let (mut p2, mut m2, mut v2) = (p.clone(), m.clone(), v.clone());
+                        // SAFETY: the CPU supports AVX-512 F, DQ and VL (checked above).
+                        let ok2 =
+                            unsafe { adam_block_avx512(&hw, &mut p2, &mut m2, &mut v2, &sum) };
+                        assert_eq!(ok0, ok2, "lanes: bound flag, t {t}, lr {lr}, trial {trial}");
+                        assert!(
+                            same(&p0, &p2) && same(&m0, &m2) && same(&v0, &v2),
+                            "lanes: t {t} lr {lr} trial {trial}"
+                        );
+                    }
+                    checked += n;
+                }
+            }
+        }
+        assert!(checked > 20 * BLOCK);
+    }
+
+    /// The exact widening and rounding under the tiny form: every subnormal f32 and samples of
+    /// the normal ones widen to their value, and rounding a product of two f32 (exact in f64)
+    /// gives the f32 product's bits, subnormal results and the edge to the normal range included.
+    #[test]
+    fn tiny_form_widens_and_rounds_exactly() {
+        for k in (0u32..0x80_0000)
+            .step_by(97)
+            .chain([1, 2, 0x7f_ffff, 0x80_0000, 0x80_0001])
+        {
+            for x in [f32::from_bits(k), -f32::from_bits(k)] {
+                assert_eq!(
+                    f32_as_f64_exact(x).to_bits(),
+                    (x as f64).to_bits(),
+                    "{k:#x}"
+                );
+            }
+        }
+        let mut rng = himap_core::rng::SplitMix::new(3);
+        for _ in 0..200_000 {
+            let a = f32::from_bits((rng.unit() * 0x0100_0000 as f32) as u32 + 0x0080_0000);
+            let b = 0.5 + rng.unit() * 0.5;
+            let a = if rng.unit() < 0.5 { -a } else { a };
+            let want = b * a;
+            let got = round_f64_to_f32(b as f64 * f32_as_f64_exact(a));
+            assert_eq!(got.to_bits(), want.to_bits(), "{a:e} * {b}");
+        }
     }
 
     /// Wherever the cheap bound settles the finiteness check, the exact check agrees: random
