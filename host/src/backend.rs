@@ -586,13 +586,7 @@ fn add_four_avx2(dst: &mut [i64], products: [f32; 4]) {
         let abs = _mm_castsi128_ps(_mm_set1_epi32(i32::MAX));
         let ok = _mm_cmplt_ps(_mm_and_ps(p, abs), _mm_set1_ps(SMALL));
         if _mm_movemask_ps(ok) == 0xf {
-            let y = _mm256_add_pd(_mm256_cvtps_pd(p), _mm256_set1_pd(MAGIC));
-            let q = _mm256_sub_epi64(
-                _mm256_castpd_si256(y),
-                _mm256_set1_epi64x(MAGIC.to_bits() as i64),
-            );
-            let d = dst.as_mut_ptr().cast::<__m256i>();
-            _mm256_storeu_si256(d, _mm256_add_epi64(_mm256_loadu_si256(d), q));
+            add_fixed_small4(dst.as_mut_ptr(), p);
             return;
         }
     }
@@ -770,7 +764,7 @@ fn adam_block_generic(
     let mut ok = true;
     let mut i = 0;
     while i < n {
-        let e = (i + 16).min(n);
+        let e = (i + ADAM_RUN).min(n);
         let (p, m, v, sum) = (&mut p[i..e], &mut m[i..e], &mut v[i..e], &sum[i..e]);
         let tiny = steady
             && m.iter()
@@ -795,6 +789,9 @@ fn adam_block_generic(
 /// ARCHITECTURE.md).
 const TINY_M: f32 = f32::from_bits((127 - 100) << 23);
 
+/// Parameters per run of [`adam_block_generic`] (16 f32 lanes of AVX-512).
+const ADAM_RUN: usize = 16;
+
 /// A run of [`adam_block_generic`] (at most 16 parameters) holding a tiny first moment:
 /// where [`adam_tiny_allowed`] holds, [`adam_tiny`]'s moments and the parameter as it was;
 /// elsewhere [`AdamHw::update`]. The update runs in lanes over the whole run on stand-in values
@@ -804,18 +801,16 @@ const TINY_M: f32 = f32::from_bits((127 - 100) << 23);
 /// (the whole point of the tiny form). The bits of [`AdamHw::update`] on every parameter.
 #[inline(always)]
 fn adam_tiny_run(hw: &AdamHw, p: &mut [f32], m: &mut [f32], v: &mut [f32], sum: &[i64]) -> bool {
-    const R: usize = 16;
+    const R: usize = ADAM_RUN;
     let n = p.len().min(m.len()).min(v.len()).min(sum.len()).min(R);
     let mut allowed = [false; R];
     let (mut mt, mut vt) = ([0.0f32; R], [0.0f32; R]);
     let (mut pu, mut mu, mut vu, mut qu) = ([1.0f32; R], [0.0f32; R], [1.0f32; R], [0i64; R]);
     for l in 0..n {
-        let a = adam_tiny_allowed(hw, p[l], m[l], v[l], sum[l]);
+        let mf = f32_as_f64_exact(m[l]);
+        let a = adam_tiny_allowed(hw, p[l], m[l], mf, v[l], sum[l]);
         allowed[l] = a;
-        let (mut m1, mut v1) = (m[l], v[l]);
-        adam_tiny(hw, &mut m1, &mut v1);
-        mt[l] = m1;
-        vt[l] = v1;
+        (mt[l], vt[l]) = adam_tiny(hw, mf, v[l]);
         if !a {
             pu[l] = p[l];
             mu[l] = m[l];
@@ -846,14 +841,14 @@ fn adam_tiny_run(hw: &AdamHw, p: &mut [f32], m: &mut [f32], v: &mut [f32], sum: 
 /// `denom >= eps`) plus the subnormal rounding of the two operations (2^-149 each, the second
 /// divided by at least `eps`), and where twice that is below `|p| 2^-26`, a quarter of the
 /// parameter's unit in the last place or less, the f32 subtraction rounds back to `p`. Float
-/// operations on normal f64 numbers only (the f32 values are widened from their bits).
+/// operations on normal f64 numbers only (`mf` is `m` widened from its bits by
+/// [`f32_as_f64_exact`], as is `p`).
 #[inline(always)]
-fn adam_tiny_allowed(hw: &AdamHw, p: f32, m: f32, v: f32, q: i64) -> bool {
+fn adam_tiny_allowed(hw: &AdamHw, p: f32, m: f32, mf: f64, v: f32, q: i64) -> bool {
     let exp = |x: f32| (x.to_bits() >> 23) & 0xff;
     let eps = hw.eps as f64;
-    let bound = 2.0
-        * ((hw.step_size as f64).abs() * f32_as_f64_exact(m).abs() / eps + TWO_POW_M149 / eps)
-        + TWO_POW_M149;
+    let bound =
+        2.0 * ((hw.step_size as f64).abs() * mf.abs() / eps + TWO_POW_M149 / eps) + TWO_POW_M149;
     (q == 0)
         & (exp(m) != 0xff)
         & (exp(p) != 0xff)
@@ -869,15 +864,16 @@ const MIN_V_BITS: u32 = (127 - 100) << 23;
 /// (the parameter stays): `m' = beta1 * m + (1 - beta1) * 0`, the product rounded to f32 from
 /// its exact f64 value without a subnormal float operation ([`round_f64_to_f32`]), and the
 /// `+ (+0)` turning a `-0` product into `+0`; `v' = beta2 * v + (1 - beta2) * 0 * 0` as the
-/// same f32 expression (normal numbers). Branch-free, for lanes.
+/// same f32 expression (normal numbers). `mf` is `m` widened by [`f32_as_f64_exact`]; returns
+/// `(m', v')`. Branch-free, for lanes.
 #[inline(always)]
-fn adam_tiny(hw: &AdamHw, m: &mut f32, v: &mut f32) {
-    let r = round_f64_to_f32(hw.beta1 as f64 * f32_as_f64_exact(*m));
+fn adam_tiny(hw: &AdamHw, mf: f64, v: f32) -> (f32, f32) {
+    let r = round_f64_to_f32(hw.beta1 as f64 * mf);
     let g = fixed::from_fixed(0);
     // `r + (+0)`: `r`, or `+0` for either zero (a bit mask, not an addition).
     let zero = (r.to_bits() << 1) == 0;
-    *m = f32::from_bits(r.to_bits() & if zero { 0 } else { u32::MAX });
-    *v = hw.beta2 * *v + hw.one_minus_beta2 * g * g;
+    let m_new = f32::from_bits(r.to_bits() & if zero { 0 } else { u32::MAX });
+    (m_new, hw.beta2 * v + hw.one_minus_beta2 * g * g)
 }
 
 /// 2^-149 (the f32 subnormal quantum), 2^-26 and 2^149 (exact, from their bits).
@@ -943,6 +939,28 @@ fn has_avx512_dq_vl() -> bool {
         && std::arch::is_x86_feature_detected!("avx512vl")
 }
 
+/// `dst[k] += to_fixed_small(h[k])` for 4 contributions below [`SMALL`] in magnitude (the
+/// caller checked): widened to f64 and rounded to whole quanta by [`to_fixed_small`]'s
+/// magic-number addition, in one read-modify-write of 4 sums. The AVX2 rows' and the narrow
+/// grids' corner pairs' conversion.
+///
+/// # Safety
+/// `dst` points at 4 readable and writable `i64`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn add_fixed_small4(dst: *mut i64, h: std::arch::x86_64::__m128) {
+    use std::arch::x86_64::*;
+    let y = _mm256_add_pd(_mm256_cvtps_pd(h), _mm256_set1_pd(MAGIC));
+    let q = _mm256_sub_epi64(
+        _mm256_castpd_si256(y),
+        _mm256_set1_epi64x(MAGIC.to_bits() as i64),
+    );
+    let d = dst.cast::<__m256i>();
+    // SAFETY: the caller's contract: 4 i64 at `dst`.
+    unsafe { _mm256_storeu_si256(d, _mm256_add_epi64(_mm256_loadu_si256(d), q)) };
+}
+
 /// [`add_scaled_row`] in AVX2 lanes, one pass: 8 products `g * x` (the same f32 products),
 /// and when all 8 are below [`SMALL`] in magnitude (NaN is not) the two halves widened to f64
 /// and rounded by [`to_fixed_small`]'s magic-number addition; a group of 8 holding a large or
@@ -957,8 +975,6 @@ fn add_scaled_row_avx2(dst: &mut [i64], g: f32, xs: &[f32]) {
     let gv = _mm256_set1_ps(g);
     let abs = _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX));
     let small = _mm256_set1_ps(SMALL);
-    let magic = _mm256_set1_pd(MAGIC);
-    let magic_bits = _mm256_set1_epi64x(MAGIC.to_bits() as i64);
     let mut i = 0;
     while i + 8 <= n {
         // SAFETY: i + 8 <= n, the length of both slices: the unaligned loads and stores stay
@@ -968,16 +984,8 @@ fn add_scaled_row_avx2(dst: &mut [i64], g: f32, xs: &[f32]) {
             let ok = _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_and_ps(p, abs), small);
             let d = dst.as_mut_ptr().add(i);
             if _mm256_movemask_ps(ok) == 0xff {
-                let wide = |h: __m128| {
-                    let y = _mm256_add_pd(_mm256_cvtps_pd(h), magic);
-                    _mm256_sub_epi64(_mm256_castpd_si256(y), magic_bits)
-                };
-                let lo = wide(_mm256_castps256_ps128(p));
-                let hi = wide(_mm256_extractf128_ps::<1>(p));
-                let d0 = d.cast::<__m256i>();
-                let d1 = d.add(4).cast::<__m256i>();
-                _mm256_storeu_si256(d0, _mm256_add_epi64(_mm256_loadu_si256(d0), lo));
-                _mm256_storeu_si256(d1, _mm256_add_epi64(_mm256_loadu_si256(d1), hi));
+                add_fixed_small4(d, _mm256_castps256_ps128(p));
+                add_fixed_small4(d.add(4), _mm256_extractf128_ps::<1>(p));
             } else {
                 for k in i..i + 8 {
                     dst[k] = dst[k].wrapping_add(fixed::to_fixed(g * xs[k]));
