@@ -162,8 +162,41 @@ impl ParamRead for [f32] {
 /// contribution; backends convert each one individually with [`fixed::to_fixed`] and add it
 /// to an `i64` buffer, so the sum is independent of order.
 pub trait GradSink {
+    /// Whether [`Self::add_layer`] takes a decoder layer's parameter contributions in one
+    /// call (a host sink that batches them over samples). False: the backward calls
+    /// [`Self::add`] and [`Self::add_scaled`] row by row, as the shaders do.
+    const LAYERS: bool = false;
+
     /// Adds one gradient contribution `g` to parameter `i`.
     fn add(&mut self, i: usize, g: f32);
+
+    /// A decoder layer's parameter contributions for one sample: for every unit `j <
+    /// fan_out` whose gradient `gs[j]` is not zero, `add(b_off + j, gs[j])` and
+    /// `add_scaled(w_off + j * fan_in, gs[j], xs, fan_in)` (zero units contribute exactly 0).
+    /// Called instead of those only when [`Self::LAYERS`] is true; a sink may defer the
+    /// additions (to a flush of its own before the sums are read): the contributions, and
+    /// hence the integer sums, are the same.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn add_layer(
+        &mut self,
+        w_off: usize,
+        b_off: usize,
+        gs: &[f32; mlp::MAX_WIDTH],
+        fan_out: usize,
+        xs: &[f32; mlp::MAX_WIDTH],
+        fan_in: usize,
+    ) {
+        let mut j = 0;
+        while j < fan_out && j < mlp::MAX_WIDTH {
+            let g = gs[j];
+            if g != 0.0 {
+                self.add(b_off + j, g);
+                self.add_scaled(w_off + j * fan_in, g, xs, fan_in);
+            }
+            j += 1;
+        }
+    }
 
     /// `add(offset + i, g * xs[i])` for every `i < n` (one contribution each; a decoder
     /// layer's weight row). Backends whose buffer is one slice override it with a tight loop

@@ -25,6 +25,9 @@ use himap_core::train::batch::{
     run_items, BatchJob, ItemRunner, MapPixels, RayJob, Rays, TripletMemo,
 };
 use himap_core::train::fixed;
+
+use crate::layers::{Dest, LayerBatches};
+use himap_core::field::negligible::{DecoderBounds, LayerBounds};
 use himap_core::train::pixel::{PixelResult, SlotPixels};
 use rayon::prelude::*;
 
@@ -388,6 +391,9 @@ struct Worker {
     /// the geometry's 2 channels, else at least 2: a row may straddle two), which the
     /// backward's cache hint names: the paper's 32 appearance channels span 4.
     grad_row_lines: [usize; 2],
+    /// The decoder layers' contributions waiting to be added ([`crate::layers`]): flushed
+    /// at the end of every [`Self::run`], before any sum is read.
+    layers: LayerBatches,
 }
 
 impl Worker {
@@ -411,6 +417,7 @@ impl Worker {
                 lines(layout.geometry_grid.channels),
                 lines(layout.appearance_grid.channels),
             ],
+            layers: LayerBatches::default(),
         }
     }
 
@@ -419,6 +426,7 @@ impl Worker {
     fn run<R>(
         &mut self,
         wt: &[Vec<f32>; 2],
+        bounds: &DecoderBounds,
         f: impl FnOnce(
             &mut RayCache,
             &mut SampleScratch,
@@ -435,13 +443,21 @@ impl Worker {
             grid_kept: &mut self.grid_kept,
             hint: std::marker::PhantomData,
             lanes: Some(&mut self.lanes),
+            bounds: Some(*bounds),
         };
         let mut sink = WorkerSink {
             grads: &mut self.grads,
             touched: &mut self.touched,
             row_lines: self.grad_row_lines,
+            layers: &mut self.layers,
         };
-        f(&mut self.cache, &mut self.scratch, &mut tape, &mut sink)
+        let r = f(&mut self.cache, &mut self.scratch, &mut tape, &mut sink);
+        self.layers.flush(&mut Dest {
+            grads: &mut self.grads,
+            touched: &mut self.touched,
+            block_shift: BLOCK_SHIFT,
+        });
+        r
     }
 }
 
@@ -452,10 +468,41 @@ struct WorkerSink<'a> {
     touched: &'a mut [Vec<bool>; NUM_GROUPS],
     /// Cache lines of one gradient row of each grid ([`Worker::grad_row_lines`]).
     row_lines: [usize; 2],
+    /// The decoder layers' contributions, added in batches of samples ([`crate::layers`]).
+    layers: &'a mut LayerBatches,
 }
 
 impl ModelGradSink for WorkerSink<'_> {
     const PREFETCH: bool = true;
+    const LAYERS: bool = true;
+
+    #[inline(always)]
+    fn add_layer(
+        &mut self,
+        group: Group,
+        w_off: usize,
+        b_off: usize,
+        gs: &[f32; MAX_WIDTH],
+        fan_out: usize,
+        xs: &[f32; MAX_WIDTH],
+        fan_in: usize,
+    ) {
+        let mut dest = Dest {
+            grads: &mut self.grads[..],
+            touched: &mut self.touched[..],
+            block_shift: BLOCK_SHIFT,
+        };
+        self.layers.push(
+            &mut dest,
+            group as usize,
+            w_off,
+            b_off,
+            gs,
+            fan_out,
+            xs,
+            fan_in,
+        );
+    }
 
     #[inline(always)]
     fn prefetch(&mut self, group: Group, offset: usize) {
@@ -684,12 +731,12 @@ fn prefetch_lines<T>(row: &[T], lines: usize) {
 const SHORT_ROW: usize = 4;
 
 /// Contributions below this magnitude take [`to_fixed_small`].
-const SMALL: f32 = 2048.0;
+pub(crate) const SMALL: f32 = 2048.0;
 /// 1.5 * 2^12, whose f64 binade [2^12, 2^13) has a unit in the last place of exactly 2^-40,
 /// the fixed-point quantum: adding an f64 below 2^11 in magnitude to it rounds that value to a
 /// whole number of quanta, half to even (1.5 * 2^52 quanta, an even number, plus the rounded
 /// count), and the sum's bits minus this constant's bits are that count.
-const MAGIC: f64 = 6144.0;
+pub(crate) const MAGIC: f64 = 6144.0;
 
 /// [`fixed::to_fixed`] for a finite `g` with `|g| < 2048`, branch-free (SIMD-friendly): `g`
 /// is exact in f64, and the magic-number addition rounds it to whole quanta half to even,
@@ -1125,10 +1172,14 @@ impl ParallelCpuBackend {
         let layout = self.data.layout;
         let params = self.data.view();
         let wt = self.data.transposed_mlps();
+        let bounds = DecoderBounds {
+            geometry: LayerBounds::of(&layout.geometry_mlp, params.geometry_mlp),
+            appearance: LayerBounds::of(&layout.appearance_mlp, params.appearance_mlp),
+        };
         let out = ChunkedOut::new(results);
         self.for_each_chunk(out.chunks(), |c, w| {
             let mut results = out.chunk(c);
-            w.run(&wt, |cache, scratch, tape, sink| {
+            w.run(&wt, &bounds, |cache, scratch, tape, sink| {
                 let mut runner = ItemRunner {
                     layout: &layout,
                     params: &params,

@@ -17,6 +17,7 @@ pub mod dump;
 pub mod geo_init;
 pub mod grow;
 pub mod lanes;
+mod layers;
 pub mod mapper_cli;
 pub mod query;
 pub mod select;

@@ -613,14 +613,21 @@ pub fn mlp_backward<P: ParamRead + ?Sized, S: GradSink>(
         // `x + (+-0)` is `x` for every `x` but `-0`, which `d_prev` never holds (it starts at
         // `+0`, and a round-to-nearest sum is `-0` only when both terms are). The other rows
         // add in row order.
+        // A sink that takes whole layers gets this layer's contributions in one call (the
+        // same ones: see `GradSink::add_layer`).
+        if S::LAYERS {
+            sink.add_layer(w_off, b_off, &delta, fan_out, &scratch.act[k], fan_in);
+        }
         let mut d_prev = [0.0f32; MAX_WIDTH];
         let mut j = 0;
         while j < fan_out {
             let g = delta[j];
             let row = w_off + j * fan_in;
             if g != 0.0 {
-                sink.add(b_off + j, g);
-                sink.add_scaled(row, g, &scratch.act[k], fan_in);
+                if !S::LAYERS {
+                    sink.add(b_off + j, g);
+                    sink.add_scaled(row, g, &scratch.act[k], fan_in);
+                }
                 params.axpy(row, g, &mut d_prev, fan_in);
             }
             j += 1;

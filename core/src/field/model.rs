@@ -495,8 +495,36 @@ pub trait ModelGradSink {
     /// it false and pay nothing).
     const PREFETCH: bool = false;
 
+    /// Whether [`Self::add_layer`] takes a decoder layer's contributions in one call (see
+    /// [`GradSink::LAYERS`]).
+    const LAYERS: bool = false;
+
     /// Adds one gradient contribution `g` to parameter `i` of `group`.
     fn add(&mut self, group: Group, i: usize, g: f32);
+
+    /// [`GradSink::add_layer`] for `group`.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn add_layer(
+        &mut self,
+        group: Group,
+        w_off: usize,
+        b_off: usize,
+        gs: &[f32; MAX_WIDTH],
+        fan_out: usize,
+        xs: &[f32; MAX_WIDTH],
+        fan_in: usize,
+    ) {
+        let mut j = 0;
+        while j < fan_out && j < MAX_WIDTH {
+            let g = gs[j];
+            if g != 0.0 {
+                self.add(group, b_off + j, g);
+                self.add_scaled(group, w_off + j * fan_in, g, xs, fan_in);
+            }
+            j += 1;
+        }
+    }
 
     /// A cache hint: contributions to `group` from `offset` on will follow soon. It changes no
     /// value (host sinks over large buffers overlap the memory latency of the next sample's
@@ -543,9 +571,25 @@ pub struct GroupSink<'s, S: ModelGradSink> {
 }
 
 impl<S: ModelGradSink> GradSink for GroupSink<'_, S> {
+    const LAYERS: bool = S::LAYERS;
+
     #[inline(always)]
     fn add(&mut self, i: usize, g: f32) {
         self.inner.add(self.group, i, g);
+    }
+
+    #[inline(always)]
+    fn add_layer(
+        &mut self,
+        w_off: usize,
+        b_off: usize,
+        gs: &[f32; MAX_WIDTH],
+        fan_out: usize,
+        xs: &[f32; MAX_WIDTH],
+        fan_in: usize,
+    ) {
+        self.inner
+            .add_layer(self.group, w_off, b_off, gs, fan_out, xs, fan_in);
     }
 
     #[inline(always)]
@@ -1392,6 +1436,11 @@ pub struct StoredTape<'a, H: RowHint = NoHint> {
     /// ([`RowHint::mlp_forward_lanes`], the same bits), without them one at a time. Host-side.
     #[cfg(not(target_arch = "spirv"))]
     pub lanes: Option<&'a mut [MlpLanes; 2]>,
+    /// The decoders' weight bounds for this step's parameters: with them, the backward skips a
+    /// sample's decoder branch whose contributions provably all round to 0 quanta
+    /// ([`crate::field::negligible`]; the same sums). `None`: every branch runs. Host-side.
+    #[cfg(not(target_arch = "spirv"))]
+    pub bounds: Option<crate::field::negligible::DecoderBounds>,
 }
 
 /// Floats per sample of [`StoredTape::grid_kept`] for `layout`: two flags, then the term
@@ -1559,7 +1608,8 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
             Some(r) if r[k] == 1.0 => r.get(range),
             _ => None,
         };
-        if d_sdf != 0.0 {
+        if d_sdf != 0.0 && !self.negligible(layout, Branch::Geometry, d_sdf, [0.0; 3], rgb, g, rec)
+        {
             let d_feat = sdf_decoder_backward(layout, params, d_sdf, g, sink);
             let mut gs = GroupSink {
                 inner: &mut *sink,
@@ -1575,7 +1625,8 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
                 kept(0, 2..2 + ng),
             );
         }
-        if d_rgb[0] != 0.0 || d_rgb[1] != 0.0 || d_rgb[2] != 0.0 {
+        let colored = d_rgb[0] != 0.0 || d_rgb[1] != 0.0 || d_rgb[2] != 0.0;
+        if colored && !self.negligible(layout, Branch::Appearance, 0.0, d_rgb, rgb, a, rec) {
             let d_feat = color_decoder_backward(layout, params, d_rgb, rgb, a, sink);
             let mut gs = GroupSink {
                 inner: sink,
@@ -1594,8 +1645,89 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
     }
 }
 
+/// A decoder branch of a sample's backward.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Branch {
+    Geometry,
+    Appearance,
+}
+
+#[cfg(target_arch = "spirv")]
+impl<H: RowHint> StoredTape<'_, H> {
+    /// The shaders never skip a branch.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn negligible(
+        &self,
+        _layout: &ModelLayout,
+        _branch: Branch,
+        _d_sdf: f32,
+        _d_rgb: [f32; 3],
+        _rgb: [f32; 3],
+        _act: &MlpScratch,
+        _rec: Option<&[f32]>,
+    ) -> bool {
+        false
+    }
+}
+
 #[cfg(not(target_arch = "spirv"))]
 impl<H: RowHint> StoredTape<'_, H> {
+    /// Whether a sample's `branch` (its decoder's backward from `d_sdf` or from `d_rgb` and
+    /// `rgb`, then its grid's through the kept term factors in `rec`) provably adds only
+    /// zeros ([`crate::field::negligible::branch_negligible`]); false without bounds, without
+    /// kept factors, or for cotangents of 2^-40 and more.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn negligible(
+        &self,
+        layout: &ModelLayout,
+        branch: Branch,
+        d_sdf: f32,
+        d_rgb: [f32; 3],
+        rgb: [f32; 3],
+        act: &MlpScratch,
+        rec: Option<&[f32]>,
+    ) -> bool {
+        use crate::field::negligible::{below_gate, branch_negligible, color_top, sdf_top};
+        let Some(bounds) = &self.bounds else {
+            return false;
+        };
+        let ng = grid::kept_len(&layout.geometry_grid);
+        let (flag, range) = match branch {
+            Branch::Geometry => (0, 2..2 + ng),
+            Branch::Appearance => (1, 2 + ng..grid_tape_len(layout)),
+        };
+        let kept = match rec {
+            Some(r) if r[flag] == 1.0 && !range.is_empty() => r.get(range),
+            _ => None,
+        };
+        let Some(kept) = kept else {
+            return false;
+        };
+        match branch {
+            Branch::Geometry => {
+                below_gate(d_sdf)
+                    && branch_negligible(
+                        &layout.geometry_mlp,
+                        act,
+                        &bounds.geometry,
+                        sdf_top(d_sdf),
+                        kept,
+                    )
+            }
+            Branch::Appearance => {
+                d_rgb.iter().all(|&d| below_gate(d))
+                    && branch_negligible(
+                        &layout.appearance_mlp,
+                        act,
+                        &bounds.appearance,
+                        color_top(d_rgb, rgb),
+                        kept,
+                    )
+            }
+        }
+    }
     /// [`SampleTape::forward_lanes`] (`KEEP`: the training forward, which records every
     /// sample's grid factors and decoder activations as [`SampleTape::forward`] does; `!KEEP`:
     /// a render, which records nothing). The grids and the
@@ -2531,6 +2663,7 @@ mod tests {
             grid_kept: &mut kept,
             hint: core::marker::PhantomData::<PortableLanes>,
             lanes: Some(&mut lanes),
+            bounds: None,
         };
         let mut total = 0.0f64;
         for (i, r) in rays.iter().enumerate() {
@@ -2682,6 +2815,7 @@ mod tests {
                                     grid_kept: &mut kept,
                                     hint: core::marker::PhantomData::<NoHint>,
                                     lanes: None,
+                                    bounds: None,
                                 };
                                 ray_depth_forward_taped(
                                     &layout, &params, r, i as u32, 4, jitter, &mut d, &mut s,
@@ -2895,6 +3029,87 @@ mod tests {
         assert!((l - (1.5 + 1.0)).abs() < 1e-6, "{l}");
     }
 
+    /// Converts every contribution to fixed point (as the backends do) and counts them.
+    struct CountingFixedSink {
+        g: [Vec<i64>; NUM_GROUPS],
+        calls: usize,
+    }
+
+    impl ModelGradSink for CountingFixedSink {
+        fn add(&mut self, group: Group, i: usize, g: f32) {
+            let v = &mut self.g[group as usize][i];
+            *v = v.wrapping_add(crate::train::fixed::to_fixed(g));
+            self.calls += 1;
+        }
+    }
+
+    /// With the decoders' weight bounds the stored tape skips the sample branches whose
+    /// contributions all round to 0 quanta: the fixed-point sums are those of the tape without
+    /// bounds, bit for bit, on fields whose surfaces are near, far (most samples' cotangents
+    /// subnormal) and in between, while fewer contributions are made where samples are far.
+    #[test]
+    fn negligible_branches_keep_the_fixed_point_sums() {
+        use crate::field::negligible::{DecoderBounds, LayerBounds};
+        let mut mixed = false;
+        for (bias, beta) in [(0.0f32, 10.0f32), (0.6, 30.0), (2.0, 30.0), (4.0, 60.0)] {
+            let layout = small(
+                RenderMode::SdfDensity,
+                crate::field::grid::GridKind::Factorized,
+            );
+            let mut p = init(&layout);
+            // The geometry decoder's output bias moves every surface away from the rays.
+            let out_bias = layout.geometry_mlp.bias_offsets[layout.geometry_mlp.dims().2];
+            p[2][out_bias as usize] = bias;
+            p[4][0] = beta;
+            let params = params_of(&p);
+            let wt = transposed(&layout, &p);
+            let loss = fd_loss(24);
+            let bounds = DecoderBounds {
+                geometry: LayerBounds::of(&layout.geometry_mlp, &p[2][..]),
+                appearance: LayerBounds::of(&layout.appearance_mlp, &p[3][..]),
+            };
+            let mut runs = Vec::new();
+            for b in [None, Some(bounds)] {
+                let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
+                let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
+                let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
+                let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(&layout)];
+                let mut lanes = [MlpLanes::new(), MlpLanes::new()];
+                let mut tape = StoredTape {
+                    geometry: &mut geometry,
+                    appearance: &mut appearance,
+                    geometry_wt: &wt[0],
+                    appearance_wt: &wt[1],
+                    grid_rows: &rows,
+                    grid_kept: &mut kept,
+                    hint: core::marker::PhantomData::<PortableLanes>,
+                    lanes: Some(&mut lanes),
+                    bounds: b,
+                };
+                let mut sink = CountingFixedSink {
+                    g: core::array::from_fn(|g| vec![0; p[g].len()]),
+                    calls: 0,
+                };
+                let (mut cache, mut s) = (RayCache::new(), SampleScratch::new());
+                for (i, r) in rays(48).iter().enumerate() {
+                    ray_train(
+                        &layout, &params, r, i as u32, &loss, &mut cache, &mut s, &mut tape,
+                        &mut sink,
+                    );
+                }
+                runs.push(sink);
+            }
+            assert_eq!(runs[0].g, runs[1].g, "bias {bias}, beta {beta}");
+            assert!(runs[1].calls <= runs[0].calls);
+            // A field where some branches were skipped and others still add quanta.
+            mixed |= runs[1].calls < runs[0].calls && runs[1].g.iter().flatten().any(|&v| v != 0);
+        }
+        assert!(
+            mixed,
+            "no field had both skipped branches and non-zero sums"
+        );
+    }
+
     /// A ray's training forward and backward with the decoders in lanes give the one-sample
     /// forms' bits: outputs, sample count, every sample's signed distance and colour, and
     /// every gradient contribution (the same sums in the same order), for every render mode,
@@ -2935,6 +3150,7 @@ mod tests {
                             grid_kept: &mut kept,
                             hint: core::marker::PhantomData::<PortableLanes>,
                             lanes: if with_lanes { Some(&mut lanes) } else { None },
+                            bounds: None,
                         };
                         let mut sink = F64Sink {
                             g: core::array::from_fn(|g| vec![0.0; p[g].len()]),
