@@ -360,6 +360,11 @@ pub struct CpuPassTimes {
     /// Parameters in the blocks Adam visited, summed over the steps (a block that was ever
     /// reached is visited on every later step: the pass grows with the area mapped).
     pub adam_params: u64,
+    /// Sample branches (a decoder and its grid) of the training backward with a non-zero
+    /// cotangent, all of which the negligible check saw ([`himap_core::field::negligible`]).
+    pub branches_checked: u64,
+    /// Of those, the branches skipped: every contribution provably rounds to 0 quanta.
+    pub branches_skipped: u64,
 }
 
 /// Parameters per block of the sum and Adam pass (and of the touched / live flags).
@@ -394,6 +399,9 @@ struct Worker {
     /// The decoder layers' contributions waiting to be added ([`crate::layers`]): flushed
     /// at the end of every [`Self::run`], before any sum is read.
     layers: LayerBatches,
+    /// Sample branches that met the negligible check and those it skipped, since the backend
+    /// was built ([`CpuPassTimes::branches_checked`]).
+    negligible: (u64, u64),
 }
 
 impl Worker {
@@ -418,6 +426,7 @@ impl Worker {
                 lines(layout.appearance_grid.channels),
             ],
             layers: LayerBatches::default(),
+            negligible: (0, 0),
         }
     }
 
@@ -444,6 +453,7 @@ impl Worker {
             hint: std::marker::PhantomData,
             lanes: Some(&mut self.lanes),
             bounds: Some(*bounds),
+            negligible_counts: Default::default(),
         };
         let mut sink = WorkerSink {
             grads: &mut self.grads,
@@ -452,6 +462,9 @@ impl Worker {
             layers: &mut self.layers,
         };
         let r = f(&mut self.cache, &mut self.scratch, &mut tape, &mut sink);
+        let (seen, skipped) = tape.negligible_counts.get();
+        self.negligible.0 += seen;
+        self.negligible.1 += skipped;
         self.layers.flush(&mut Dest {
             grads: &mut self.grads,
             touched: &mut self.touched,
@@ -1103,7 +1116,13 @@ impl ParallelCpuBackend {
 
     /// The passes' wall time so far.
     pub fn pass_times(&self) -> CpuPassTimes {
-        self.times
+        let mut t = self.times;
+        for w in &self.workers {
+            let w = w.lock().unwrap_or_else(|e| e.into_inner());
+            t.branches_checked += w.negligible.0;
+            t.branches_skipped += w.negligible.1;
+        }
+        t
     }
 
     /// Adds image slot storage of the given size (zero-filled).

@@ -24,6 +24,9 @@ pub struct BenchRow {
     pub forward_samples_per_s: f64,
     pub train_samples_per_s: f64,
     pub train_ms_per_step: f64,
+    /// CPU: the share of the training backward's sample branches skipped because every
+    /// contribution rounds to 0 quanta ([`himap_core::field::negligible`]).
+    pub skipped_share: Option<f64>,
 }
 
 /// Random rays from inside `aabb` (shrunk by 20%) in random directions (each component
@@ -165,6 +168,7 @@ fn row(
         forward_samples_per_s: samples / fwd,
         train_samples_per_s: samples / train,
         train_ms_per_step: train * 1e3,
+        skipped_share: None,
     }
 }
 
@@ -182,7 +186,10 @@ pub fn bench_cpu(
     let mut be = ParallelCpuBackend::new(data, paper_adam(), threads)?;
     let t = measure(&mut be, cfg, rays, steps, fastest)?;
     let work = be.work_bytes() - layout.param_count() * 8;
-    Ok(row(be.name(), name, cfg, &layout, rays, work, t))
+    let mut r = row(be.name(), name, cfg, &layout, rays, work, t);
+    let p = be.pass_times();
+    r.skipped_share = Some(p.branches_skipped as f64 / p.branches_checked.max(1) as f64);
+    Ok(r)
 }
 
 /// A profiled training step: the passes' times and the wall time of the profiled steps (ms).
@@ -351,7 +358,9 @@ pub fn run_bench(opts: &BenchOptions, out: &mut dyn std::io::Write) -> anyhow::R
                 writeln!(
                     out,
                     "  {}: {:.1} ms per step = {:.1} % of the {:.0} ms bound ({:.2} GFLOP at \
-                     160 GFLOP/s); peak memory of the process {}",
+                     160 GFLOP/s); peak memory of the process {}; sample branches skipped as \
+                     negligible (every contribution below half a quantum, the same sums): \
+                     {:.1} %",
                     r.backend,
                     r.train_ms_per_step,
                     100.0 * bound_ms / r.train_ms_per_step,
@@ -359,7 +368,8 @@ pub fn run_bench(opts: &BenchOptions, out: &mut dyn std::io::Write) -> anyhow::R
                     flop / 1e9,
                     peak_rss_bytes()
                         .map(|b| format!("{:.0} MB", b as f64 / 1e6))
-                        .unwrap_or_else(|| "unknown".into())
+                        .unwrap_or_else(|| "unknown".into()),
+                    100.0 * r.skipped_share.unwrap_or(0.0)
                 )?;
             }
         }

@@ -208,7 +208,19 @@ pub fn format_cpu_profile(t: &crate::backend::CpuPassTimes, seconds: f64, params
         t.adam_params as f64 / steps / 1e6,
         params as f64 / 1e6
     );
+    s += &negligible_line(t);
     s
+}
+
+/// The profile's line on the backward's skipped sample branches (their contributions all
+/// round to 0 quanta: the same sums).
+pub fn negligible_line(t: &crate::backend::CpuPassTimes) -> String {
+    format!(
+        "  sample branches skipped as negligible (every contribution below half a quantum): \
+         {:.1} % of {}\n",
+        100.0 * t.branches_skipped as f64 / t.branches_checked.max(1) as f64,
+        t.branches_checked
+    )
 }
 
 impl MapBackend for VulkanBackend {

@@ -1441,6 +1441,10 @@ pub struct StoredTape<'a, H: RowHint = NoHint> {
     /// ([`crate::field::negligible`]; the same sums). `None`: every branch runs. Host-side.
     #[cfg(not(target_arch = "spirv"))]
     pub bounds: Option<crate::field::negligible::DecoderBounds>,
+    /// Counts of the backward's sample branches with a non-zero cotangent that met the
+    /// bounds (`.0`) and of those skipped as negligible (`.1`), for the profile. Host-side.
+    #[cfg(not(target_arch = "spirv"))]
+    pub negligible_counts: core::cell::Cell<(u64, u64)>,
 }
 
 /// Floats per sample of [`StoredTape::grid_kept`] for `layout`: two flags, then the term
@@ -1705,7 +1709,7 @@ impl<H: RowHint> StoredTape<'_, H> {
         let Some(kept) = kept else {
             return false;
         };
-        match branch {
+        let skip = match branch {
             Branch::Geometry => {
                 below_gate(d_sdf)
                     && branch_negligible(
@@ -1726,7 +1730,11 @@ impl<H: RowHint> StoredTape<'_, H> {
                         kept,
                     )
             }
-        }
+        };
+        let (seen, skipped) = self.negligible_counts.get();
+        self.negligible_counts
+            .set((seen + 1, skipped + skip as u64));
+        skip
     }
     /// [`SampleTape::forward_lanes`] (`KEEP`: the training forward, which records every
     /// sample's grid factors and decoder activations as [`SampleTape::forward`] does; `!KEEP`:
@@ -2664,6 +2672,7 @@ mod tests {
             hint: core::marker::PhantomData::<PortableLanes>,
             lanes: Some(&mut lanes),
             bounds: None,
+            negligible_counts: Default::default(),
         };
         let mut total = 0.0f64;
         for (i, r) in rays.iter().enumerate() {
@@ -2816,6 +2825,7 @@ mod tests {
                                     hint: core::marker::PhantomData::<NoHint>,
                                     lanes: None,
                                     bounds: None,
+                                    negligible_counts: Default::default(),
                                 };
                                 ray_depth_forward_taped(
                                     &layout, &params, r, i as u32, 4, jitter, &mut d, &mut s,
@@ -3085,6 +3095,7 @@ mod tests {
                     hint: core::marker::PhantomData::<PortableLanes>,
                     lanes: Some(&mut lanes),
                     bounds: b,
+                    negligible_counts: Default::default(),
                 };
                 let mut sink = CountingFixedSink {
                     g: core::array::from_fn(|g| vec![0; p[g].len()]),
@@ -3151,6 +3162,7 @@ mod tests {
                             hint: core::marker::PhantomData::<PortableLanes>,
                             lanes: if with_lanes { Some(&mut lanes) } else { None },
                             bounds: None,
+                            negligible_counts: Default::default(),
                         };
                         let mut sink = F64Sink {
                             g: core::array::from_fn(|g| vec![0.0; p[g].len()]),
