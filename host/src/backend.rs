@@ -27,7 +27,9 @@ use himap_core::train::batch::{
 use himap_core::train::fixed;
 
 use crate::layers::{Dest, LayerBatches};
-use himap_core::field::negligible::{DecoderBounds, LayerBounds};
+use himap_core::field::negligible::{
+    appearance_output_finite, max_abs, DecoderBounds, LayerBounds,
+};
 use himap_core::train::pixel::{PixelResult, SlotPixels};
 use rayon::prelude::*;
 
@@ -340,6 +342,12 @@ pub struct ParallelCpuBackend {
     bounded: [Vec<bool>; NUM_GROUPS],
     /// Wall time of the passes so far (`himap map --profile`).
     times: CpuPassTimes,
+    /// The largest magnitude of the appearance grid's parameters (+inf when one is not
+    /// finite), computed for a render when unknown and forgotten whenever parameters change.
+    appearance_max: Option<f64>,
+    /// Whether the current job may render colours lazily ([`SampleTape::lazy_color`]): set
+    /// by [`Backend::render`] for its job only.
+    lazy_color: bool,
 }
 
 /// Wall time of the CPU backend's passes, totals since the backend was built (kept over a
@@ -436,6 +444,7 @@ impl Worker {
         &mut self,
         wt: &[Vec<f32>; 2],
         bounds: &DecoderBounds,
+        lazy_color: bool,
         f: impl FnOnce(
             &mut RayCache,
             &mut SampleScratch,
@@ -454,6 +463,7 @@ impl Worker {
             lanes: Some(&mut self.lanes),
             bounds: Some(*bounds),
             negligible_counts: Default::default(),
+            lazy_color,
         };
         let mut sink = WorkerSink {
             grads: &mut self.grads,
@@ -1111,7 +1121,30 @@ impl ParallelCpuBackend {
             store: ImageStore::default(),
             images: Vec::new(),
             times: CpuPassTimes::default(),
+            appearance_max: None,
+            lazy_color: false,
         })
+    }
+
+    /// Whether the appearance decoder's output is finite for every sample of the current
+    /// parameters ([`appearance_output_finite`]), so that a render may skip the colours of
+    /// samples with a zero weight. The appearance grid's largest magnitude is scanned on the
+    /// pool once per parameter change.
+    fn colors_finite(&mut self) -> bool {
+        let grid = &self.data.params[Group::AppearanceGrid as usize];
+        let max = *self.appearance_max.get_or_insert_with(|| {
+            self.pool.install(|| {
+                grid.par_chunks(1 << 16)
+                    .map(|c| max_abs(c).unwrap_or(f64::INFINITY))
+                    .reduce(|| 0.0, f64::max)
+            })
+        });
+        let layout = &self.data.layout;
+        appearance_output_finite(
+            &layout.appearance_mlp,
+            &self.data.params[Group::AppearanceMlp as usize][..],
+            max,
+        )
     }
 
     /// The passes' wall time so far.
@@ -1148,6 +1181,7 @@ impl ParallelCpuBackend {
     /// Mutable access to the model data (loading a saved map; the gradients are untouched).
     pub fn data_mut(&mut self) -> &mut ModelData {
         self.live_stale = true;
+        self.appearance_max = None;
         &mut self.data
     }
 
@@ -1198,18 +1232,23 @@ impl ParallelCpuBackend {
         let out = ChunkedOut::new(results);
         self.for_each_chunk(out.chunks(), |c, w| {
             let mut results = out.chunk(c);
-            w.run(&wt, &bounds, |cache, scratch, tape, sink| {
-                let mut runner = ItemRunner {
-                    layout: &layout,
-                    params: &params,
-                    cache,
-                    scratch,
-                    tape,
-                    sink,
-                    memo: TripletMemo::EMPTY,
-                };
-                run_items(job, &mut runner, c * CHUNK, &mut results);
-            });
+            w.run(
+                &wt,
+                &bounds,
+                self.lazy_color,
+                |cache, scratch, tape, sink| {
+                    let mut runner = ItemRunner {
+                        layout: &layout,
+                        params: &params,
+                        cache,
+                        scratch,
+                        tape,
+                        sink,
+                        memo: TripletMemo::EMPTY,
+                    };
+                    run_items(job, &mut runner, c * CHUNK, &mut results);
+                },
+            );
         });
         drop(out);
         Ok(J::summarize(results, self.data.t))
@@ -1393,6 +1432,7 @@ impl ParallelCpuBackend {
     /// Adam step `t` on the blocks [`Self::reduce_grads`] marked, from the summed gradients.
     fn apply_adam(&mut self, t: u32) {
         self.data.t = t;
+        self.appearance_max = None;
         let ModelData { params, m, v, .. } = &mut self.data;
         for g in 0..NUM_GROUPS {
             let hw = AdamHw::new(&AdamStep::new(&self.adam[g], t));
@@ -1502,13 +1542,16 @@ impl Backend for ParallelCpuBackend {
 
     fn render(&mut self, rays: &[Ray], results: &mut [RayResult]) -> Result<(), CpuError> {
         let t0 = Instant::now();
-        self.run_job(
+        self.lazy_color = self.colors_finite();
+        let r = self.run_job(
             &Rays {
                 rays,
                 job: RayJob::Render,
             },
             results,
-        )?;
+        );
+        self.lazy_color = false;
+        r?;
         self.times.renders += t0.elapsed();
         Ok(())
     }
@@ -1548,6 +1591,7 @@ impl Backend for ParallelCpuBackend {
     ) -> Result<(), CpuError> {
         let g = group as usize;
         self.bounded[g].fill(false);
+        self.appearance_max = None;
         let ModelData { params, m, v, .. } = &mut self.data;
         Ok(write_group(
             group,

@@ -1276,6 +1276,36 @@ pub trait SampleTape {
         forward_one_at_a_time(self, layout, params, ray, i, ts, keep, s, sdf, rgb);
     }
 
+    /// Whether a render may evaluate the appearance of only the samples whose rendering
+    /// weight is not zero ([`ray_forward_taped`]): each other sample adds `+0 * c = +0` to the
+    /// colour, the same bits, provided its colour `c` is not NaN, which the tape's owner must
+    /// have shown ([`crate::field::negligible::appearance_output_finite`]). Host-side.
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn lazy_color(&self) -> bool {
+        false
+    }
+
+    /// A render's forward of the samples at depths `ts[..min(LANES, ts.len())]` for one part:
+    /// with `GEO` their signed distances into `sdf`, with `APP` their colours into `rgb`, the
+    /// bits of [`SampleTape::forward_lanes`] (which the default runs, computing both).
+    /// Host-side.
+    #[cfg(not(target_arch = "spirv"))]
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn render_lanes_part<P: ParamRead + ?Sized, const GEO: bool, const APP: bool>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        ts: &[f32],
+        s: &mut SampleScratch,
+        sdf: &mut [f32; LANES],
+        rgb: &mut [[f32; 3]; LANES],
+    ) {
+        self.forward_lanes(layout, params, ray, 0, ts, false, s, sdf, rgb);
+    }
+
     /// A cache hint: the forward of the sample at depth `t` comes next (nothing by default;
     /// no value changes).
     #[inline(always)]
@@ -1445,6 +1475,10 @@ pub struct StoredTape<'a, H: RowHint = NoHint> {
     /// bounds (`.0`) and of those skipped as negligible (`.1`), for the profile. Host-side.
     #[cfg(not(target_arch = "spirv"))]
     pub negligible_counts: core::cell::Cell<(u64, u64)>,
+    /// [`SampleTape::lazy_color`]: set only where the appearance decoder's output is shown
+    /// finite for every sample of the current parameters. Host-side.
+    #[cfg(not(target_arch = "spirv"))]
+    pub lazy_color: bool,
 }
 
 /// Floats per sample of [`StoredTape::grid_kept`] for `layout`: two flags, then the term
@@ -1514,10 +1548,31 @@ impl<H: RowHint> SampleTape for StoredTape<'_, H> {
         rgb: &mut [[f32; 3]; LANES],
     ) {
         if keep {
-            self.lanes_forward::<P, true>(layout, params, ray, i, ts, s, sdf, rgb);
+            self.lanes_forward::<P, true, true, true>(layout, params, ray, i, ts, s, sdf, rgb);
         } else {
-            self.lanes_forward::<P, false>(layout, params, ray, i, ts, s, sdf, rgb);
+            self.lanes_forward::<P, false, true, true>(layout, params, ray, i, ts, s, sdf, rgb);
         }
+    }
+
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn lazy_color(&self) -> bool {
+        self.lazy_color
+    }
+
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn render_lanes_part<P: ParamRead + ?Sized, const GEO: bool, const APP: bool>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        ts: &[f32],
+        s: &mut SampleScratch,
+        sdf: &mut [f32; LANES],
+        rgb: &mut [[f32; 3]; LANES],
+    ) {
+        self.lanes_forward::<P, false, GEO, APP>(layout, params, ray, 0, ts, s, sdf, rgb);
     }
 
     #[inline(always)]
@@ -1744,7 +1799,7 @@ impl<H: RowHint> StoredTape<'_, H> {
     /// bits. Samples the tape has no record for, or no lanes, go one at a time.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn lanes_forward<P: ParamRead + ?Sized, const KEEP: bool>(
+    fn lanes_forward<P: ParamRead + ?Sized, const KEEP: bool, const GEO: bool, const APP: bool>(
         &mut self,
         layout: &ModelLayout,
         params: &Params<'_, P>,
@@ -1755,6 +1810,8 @@ impl<H: RowHint> StoredTape<'_, H> {
         sdf: &mut [f32; LANES],
         rgb: &mut [[f32; 3]; LANES],
     ) {
+        // A part alone only for a render (a training forward keeps both decoders' records).
+        const { assert!(!KEEP || (GEO && APP)) };
         let k = ts.len().min(LANES);
         let recorded = !KEEP || (i + k <= self.geometry.len() && i + k <= self.appearance.len());
         let lanes = match self.lanes.take() {
@@ -1771,7 +1828,7 @@ impl<H: RowHint> StoredTape<'_, H> {
         for (l, &t) in ts.iter().take(LANES).enumerate() {
             // The cache hint one sample ahead in a ray's first group; the later groups'
             // samples were named during the previous group's decoders (below).
-            if i == 0 {
+            if i == 0 && APP {
                 if let Some(&next) = ts.get(l + 1) {
                     self.prefetch(layout, params, ray, next);
                 }
@@ -1785,34 +1842,40 @@ impl<H: RowHint> StoredTape<'_, H> {
             } else {
                 (None, None, None)
             };
-            let keep_g = grid_forward_keeping(
-                &layout.geometry_grid,
-                params.geometry_grid,
-                p,
-                &mut s.geo_feat,
-                kg,
-            );
-            geometry_input(layout, &s.geo_feat, &mut s.mlp_in);
-            for (a, &v) in gl.act[0][..gn].iter_mut().zip(&s.mlp_in[..gn]) {
-                a[l] = v;
+            let mut keep_g = false;
+            if GEO {
+                keep_g = grid_forward_keeping(
+                    &layout.geometry_grid,
+                    params.geometry_grid,
+                    p,
+                    &mut s.geo_feat,
+                    kg,
+                );
+                geometry_input(layout, &s.geo_feat, &mut s.mlp_in);
+                for (a, &v) in gl.act[0][..gn].iter_mut().zip(&s.mlp_in[..gn]) {
+                    a[l] = v;
+                }
+                if KEEP {
+                    self.geometry[i + l].act[0][..gn].copy_from_slice(&s.mlp_in[..gn]);
+                }
             }
-            if KEEP {
-                self.geometry[i + l].act[0][..gn].copy_from_slice(&s.mlp_in[..gn]);
-            }
-            let keep_a = grid_forward_keeping(
-                &layout.appearance_grid,
-                params.appearance_grid,
-                p,
-                &mut s.app_feat,
-                ka,
-            );
-            let pn = layout.config.aabb.normalize(p);
-            appearance_input(layout, pn, &s.app_feat, &mut s.mlp_in);
-            for (a, &v) in al.act[0][..an].iter_mut().zip(&s.mlp_in[..an]) {
-                a[l] = v;
-            }
-            if KEEP {
-                self.appearance[i + l].act[0][..an].copy_from_slice(&s.mlp_in[..an]);
+            let mut keep_a = false;
+            if APP {
+                keep_a = grid_forward_keeping(
+                    &layout.appearance_grid,
+                    params.appearance_grid,
+                    p,
+                    &mut s.app_feat,
+                    ka,
+                );
+                let pn = layout.config.aabb.normalize(p);
+                appearance_input(layout, pn, &s.app_feat, &mut s.mlp_in);
+                for (a, &v) in al.act[0][..an].iter_mut().zip(&s.mlp_in[..an]) {
+                    a[l] = v;
+                }
+                if KEEP {
+                    self.appearance[i + l].act[0][..an].copy_from_slice(&s.mlp_in[..an]);
+                }
             }
             if let Some(f) = flags {
                 f[0] = if keep_g { 1.0 } else { 0.0 };
@@ -1822,8 +1885,10 @@ impl<H: RowHint> StoredTape<'_, H> {
         // The next group's rows load while the decoders run: the appearance's finest level
         // (as one sample ahead) and the geometry's two finest.
         for &t in ts.iter().skip(k).take(LANES) {
-            self.prefetch(layout, params, ray, t);
-            if let (true, Some(sl)) = (H::ACTIVE, params.geometry_grid.as_slice()) {
+            if APP {
+                self.prefetch(layout, params, ray, t);
+            }
+            if let (true, true, Some(sl)) = (GEO, H::ACTIVE, params.geometry_grid.as_slice()) {
                 let g = &layout.geometry_grid;
                 let p = point_on_ray(ray, t);
                 for lv in (g.levels as usize).saturating_sub(GROUP_HINT_LEVELS)..g.levels as usize {
@@ -1833,15 +1898,23 @@ impl<H: RowHint> StoredTape<'_, H> {
         }
         let mut go = [[0.0f32; LANES]; MAX_OUT];
         let mut ao = [[0.0f32; LANES]; MAX_OUT];
-        H::mlp_forward_lanes(gm, self.geometry_wt, gl, &mut go);
-        H::mlp_forward_lanes(am, self.appearance_wt, al, &mut ao);
+        if GEO {
+            H::mlp_forward_lanes(gm, self.geometry_wt, gl, &mut go);
+        }
+        if APP {
+            H::mlp_forward_lanes(am, self.appearance_wt, al, &mut ao);
+        }
         for l in 0..k {
-            sdf[l] = go[0][l];
-            rgb[l] = [
-                math::sigmoid(ao[0][l]),
-                math::sigmoid(ao[1][l]),
-                math::sigmoid(ao[2][l]),
-            ];
+            if GEO {
+                sdf[l] = go[0][l];
+            }
+            if APP {
+                rgb[l] = [
+                    math::sigmoid(ao[0][l]),
+                    math::sigmoid(ao[1][l]),
+                    math::sigmoid(ao[2][l]),
+                ];
+            }
         }
         if KEEP {
             // The hidden activations into each sample's record, for the decoders' backward.
@@ -2103,6 +2176,71 @@ fn ray_forward_with<P: ParamRead + ?Sized, T: SampleTape, const DEPTH_ONLY: bool
     // transmittance bits as `render_forward`; the GPU evaluates them all, which gives the
     // same rendering).
     let (mode, t_min) = (layout.config.render_mode, layout.config.min_transmittance);
+    // (A ray with a non-finite origin or direction takes the full forward: its positions,
+    // and so its colours, may be NaN where the geometry's are not.)
+    #[cfg(not(target_arch = "spirv"))]
+    if !DEPTH_ONLY
+        && tape.has_lanes()
+        && tape.lazy_color()
+        && ray.origin.iter().chain(&ray.dir).all(|v| v.is_finite())
+    {
+        // The signed distances first ([`LANES`] at a time, the same termination), then the
+        // weights, then the colours of the samples with a weight: a sample of weight +0 adds
+        // `+0 * c = +0` to the colour whatever its (finite, `lazy_color`) colour, so it is
+        // left at 0 and the compositing gives the same bits.
+        let (mut sdf, mut rgb) = ([0.0f32; LANES], [[0.0f32; 3]; LANES]);
+        let mut trans = 1.0f32;
+        let mut i = 0;
+        'geo: while i < n {
+            tape.render_lanes_part::<P, true, false>(
+                layout,
+                params,
+                ray,
+                &cache.t[i..n],
+                s,
+                &mut sdf,
+                &mut rgb,
+            );
+            for &d in sdf.iter().take(n - i) {
+                cache.sdf[i] = d;
+                cache.rgb[i] = [0.0; 3];
+                i += 1;
+                if t_min > 0.0 {
+                    trans *= render::transmittance_factor(mode, params.beta, d);
+                    if trans < t_min {
+                        break 'geo;
+                    }
+                }
+            }
+        }
+        cache.n = i;
+        ray_composite(layout, params.beta, cache);
+        let (mut idx, mut ts, mut m) = ([0usize; LANES], [0.0f32; LANES], 0);
+        for k in 0..cache.n {
+            if cache.out.weights[k] != 0.0 {
+                idx[m] = k;
+                ts[m] = cache.t[k];
+                m += 1;
+            }
+            if m == LANES || (m > 0 && k + 1 == cache.n) {
+                tape.render_lanes_part::<P, false, true>(
+                    layout,
+                    params,
+                    ray,
+                    &ts[..m],
+                    s,
+                    &mut sdf,
+                    &mut rgb,
+                );
+                for (&j, &c) in idx[..m].iter().zip(&rgb) {
+                    cache.rgb[j] = c;
+                }
+                m = 0;
+            }
+        }
+        ray_composite(layout, params.beta, cache);
+        return;
+    }
     #[cfg(not(target_arch = "spirv"))]
     if !DEPTH_ONLY && tape.has_lanes() {
         // [`LANES`] samples at a time: the same samples and bits; the compositing stops at
@@ -2673,6 +2811,7 @@ mod tests {
             lanes: Some(&mut lanes),
             bounds: None,
             negligible_counts: Default::default(),
+            lazy_color: false,
         };
         let mut total = 0.0f64;
         for (i, r) in rays.iter().enumerate() {
@@ -2826,6 +2965,7 @@ mod tests {
                                     lanes: None,
                                     bounds: None,
                                     negligible_counts: Default::default(),
+                                    lazy_color: false,
                                 };
                                 ray_depth_forward_taped(
                                     &layout, &params, r, i as u32, 4, jitter, &mut d, &mut s,
@@ -3096,6 +3236,7 @@ mod tests {
                     lanes: Some(&mut lanes),
                     bounds: b,
                     negligible_counts: Default::default(),
+                    lazy_color: false,
                 };
                 let mut sink = CountingFixedSink {
                     g: core::array::from_fn(|g| vec![0; p[g].len()]),
@@ -3118,6 +3259,76 @@ mod tests {
         assert!(
             mixed,
             "no field had both skipped branches and non-zero sums"
+        );
+    }
+
+    /// A render that evaluates the colours of only the samples with a weight gives the full
+    /// render's bits (colour, depth, opacity, weights, sample count) for every render mode, with
+    /// and without early termination, on near and far fields; some samples do have a zero
+    /// weight on the far ones.
+    #[test]
+    fn lazy_color_renders_the_same_bits() {
+        let mut zero_weights = 0;
+        for mode in [
+            RenderMode::SdfDensity,
+            RenderMode::Occupancy,
+            RenderMode::SdfDirect,
+        ] {
+            for t_min in [0.0, 1e-4] {
+                for (bias, beta) in [(0.0f32, 10.0f32), (0.6, 30.0), (2.0, 30.0)] {
+                    let mut layout = small(mode, crate::field::grid::GridKind::Factorized);
+                    layout.config.min_transmittance = t_min;
+                    let mut p = init(&layout);
+                    let out_bias = layout.geometry_mlp.bias_offsets[layout.geometry_mlp.dims().2];
+                    p[2][out_bias as usize] = bias;
+                    p[4][0] = beta;
+                    let params = params_of(&p);
+                    let wt = transposed(&layout, &p);
+                    for (i, r) in rays(24).iter().enumerate() {
+                        let mut outs = Vec::new();
+                        for lazy in [false, true] {
+                            let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
+                            let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
+                            let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
+                            let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(&layout)];
+                            let mut lanes = [MlpLanes::new(), MlpLanes::new()];
+                            let mut tape = StoredTape {
+                                geometry: &mut geometry,
+                                appearance: &mut appearance,
+                                geometry_wt: &wt[0],
+                                appearance_wt: &wt[1],
+                                grid_rows: &rows,
+                                grid_kept: &mut kept,
+                                hint: core::marker::PhantomData::<PortableLanes>,
+                                lanes: Some(&mut lanes),
+                                bounds: None,
+                                negligible_counts: Default::default(),
+                                lazy_color: lazy,
+                            };
+                            let (mut cache, mut s) = (RayCache::new(), SampleScratch::new());
+                            ray_forward_taped(
+                                &layout, &params, r, i as u32, 3, false, &mut cache, &mut s,
+                                &mut tape,
+                            );
+                            outs.push(cache);
+                        }
+                        let (a, b) = (&outs[0], &outs[1]);
+                        let what = format!("{mode:?} t_min {t_min} bias {bias} ray {i}");
+                        assert_eq!(a.n, b.n, "{what}");
+                        assert_eq!(a.out.color.map(f32::to_bits), b.out.color.map(f32::to_bits));
+                        assert_eq!(a.out.depth.to_bits(), b.out.depth.to_bits(), "{what}");
+                        assert_eq!(a.out.opacity.to_bits(), b.out.opacity.to_bits(), "{what}");
+                        for k in 0..a.n {
+                            assert_eq!(a.out.weights[k].to_bits(), b.out.weights[k].to_bits());
+                            zero_weights += (a.out.weights[k] == 0.0) as usize;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(
+            zero_weights > 100,
+            "only {zero_weights} samples of zero weight"
         );
     }
 
@@ -3163,6 +3374,7 @@ mod tests {
                             lanes: if with_lanes { Some(&mut lanes) } else { None },
                             bounds: None,
                             negligible_counts: Default::default(),
+                            lazy_color: false,
                         };
                         let mut sink = F64Sink {
                             g: core::array::from_fn(|g| vec![0.0; p[g].len()]),

@@ -1,4 +1,5 @@
-//! Samples whose backward provably adds nothing (host-side).
+//! Work that provably changes no result (host-side): samples whose backward adds nothing,
+//! and the colours a render need not evaluate.
 //!
 //! Every contribution of a sample's backward is converted to fixed point on its own
 //! (`to_fixed`: `g * 2^40` rounded to the nearest integer), so a contribution below half a
@@ -43,20 +44,7 @@ impl LayerBounds {
             let fan_in = if k == 0 { n_in } else { hidden };
             let fan_out = if k == layers { n_out } else { hidden };
             let off = layout.weight_offsets[k] as usize;
-            let n = fan_in * fan_out;
-            *wk = match params.as_slice() {
-                Some(s) => match s.get(off..off + n) {
-                    Some(row) => max_abs(row).unwrap_or(f64::INFINITY),
-                    None => f64::INFINITY,
-                },
-                None => {
-                    let mut m = 0u32;
-                    for i in 0..n {
-                        m = m.max(params.at(off + i).to_bits() & 0x7fff_ffff);
-                    }
-                    bits_bound(m).unwrap_or(f64::INFINITY)
-                }
-            };
+            *wk = group_max(params, off, fan_in * fan_out).unwrap_or(f64::INFINITY);
         }
         Self(w)
     }
@@ -170,6 +158,57 @@ pub fn branch_negligible(
     2.0 * b * f + SLACK < LIMIT
 }
 
+/// Whether the appearance decoder's outputs are finite for every sample (so that no colour
+/// is NaN: the sigmoid of a finite number is in [0, 1]), given `grid_max`, the largest
+/// magnitude of the appearance grid's parameters. A feature is at most `3 (2 v) (2 v)` (a
+/// factorized level's three line-plane products of interpolated values, each within twice
+/// the largest corner: weights in [0, 1] that sum to 1, plus rounding) or `2 v` (a dense
+/// level), doubled for rounding; the normalised position is within [-1, 1]. Each layer's
+/// outputs are then at most `2 (fan_in max|W| h + max|b|) + 1`; all below 1e36 leaves a
+/// factor of 300 to `f32::MAX`, so no sum overflows and no NaN arises.
+pub fn appearance_output_finite<P: ParamRead + ?Sized>(
+    layout: &MlpLayout,
+    decoder: &P,
+    grid_max: f64,
+) -> bool {
+    if !grid_max.is_finite() {
+        return false;
+    }
+    let v = 2.0 * grid_max;
+    let mut h = (2.0 * (3.0 * v * v + v)).max(2.0);
+    let (n_in, hidden, layers, n_out) = layout.dims();
+    for k in 0..=layers {
+        let fan_in = if k == 0 { n_in } else { hidden };
+        let fan_out = if k == layers { n_out } else { hidden };
+        let w = group_max(decoder, layout.weight_offsets[k] as usize, fan_in * fan_out);
+        let b = group_max(decoder, layout.bias_offsets[k] as usize, fan_out);
+        let (Some(w), Some(b)) = (w, b) else {
+            return false;
+        };
+        h = 2.0 * (fan_in as f64 * w * h + b) + 1.0;
+        let bounded = h < 1.0e36;
+        if !bounded {
+            return false;
+        }
+    }
+    true
+}
+
+/// [`max_abs`] of `n` parameters from `off` (`None` past the buffer or when one is not
+/// finite).
+fn group_max<P: ParamRead + ?Sized>(params: &P, off: usize, n: usize) -> Option<f64> {
+    match params.as_slice() {
+        Some(s) => max_abs(s.get(off..off + n)?),
+        None => {
+            let mut m = 0u32;
+            for i in 0..n {
+                m = m.max(params.at(off + i).to_bits() & 0x7fff_ffff);
+            }
+            bits_bound(m)
+        }
+    }
+}
+
 #[cfg(test)]
 #[allow(clippy::disallowed_methods)] // std's functions as test oracles
 mod tests {
@@ -223,6 +262,53 @@ mod tests {
         assert_eq!(&b.0[..2], &[0.25, 3.0]);
         p[1] = f32::INFINITY;
         assert_eq!(LayerBounds::of(&l, &p[..]).0[0], f64::INFINITY);
+    }
+
+    /// The appearance guard: true for ordinary decoders and grids, false for non-finite or
+    /// huge ones; and where it says finite, the decoder's outputs at inputs of the bound's
+    /// magnitude (features of `3 (2 v)^2` either sign, positions of +-1) are finite.
+    #[test]
+    fn appearance_guard_means_finite_outputs() {
+        let l = MlpLayout::new(35, 32, 2, 3).unwrap();
+        let mut rng = SplitMix::new(8);
+        let mut said_finite = 0;
+        for trial in 0..300 {
+            let wscale = [0.5f32, 30.0, 1.0e3, 1.0e5][trial % 4];
+            let p: std::vec::Vec<f32> = (0..l.param_count)
+                .map(|_| (rng.unit() - 0.5) * 2.0 * wscale)
+                .collect();
+            let v = [0.01f64, 1.0, 1.0e4, 1.0e8][(trial / 4) % 4];
+            if !appearance_output_finite(&l, &p[..], v) {
+                continue;
+            }
+            said_finite += 1;
+            for _ in 0..20 {
+                let mut x = [0.0f32; MAX_WIDTH];
+                for (i, xi) in x.iter_mut().take(35).enumerate() {
+                    let sign = if rng.unit() < 0.5 { -1.0 } else { 1.0 };
+                    *xi = if i < 3 {
+                        sign
+                    } else {
+                        sign * (12.0 * v * v) as f32
+                    };
+                }
+                let mut s = mlp::MlpScratch::new();
+                let mut out = [0.0f32; MAX_OUT];
+                mlp::mlp_forward(&l, &p[..], &x, &mut s, &mut out);
+                assert!(out[..3].iter().all(|o| o.is_finite()), "trial {trial}");
+            }
+        }
+        assert!(
+            said_finite > 30,
+            "the guard passed only {said_finite} decoders"
+        );
+        let p = std::vec![0.1f32; l.param_count as usize];
+        assert!(appearance_output_finite(&l, &p[..], 0.05));
+        assert!(!appearance_output_finite(&l, &p[..], f64::INFINITY));
+        assert!(!appearance_output_finite(&l, &p[..], 1.0e20));
+        let mut q = p.clone();
+        q[7] = f32::NAN;
+        assert!(!appearance_output_finite(&l, &q[..], 0.05));
     }
 
     /// Over random decoders, activations and cotangents spanning the scale where the check

@@ -143,6 +143,28 @@ impl<T: SampleTape> SampleTape for RenderTape<'_, T> {
             .forward_lanes(layout, params, ray, 0, ts, false, s, sdf, rgb);
     }
 
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn lazy_color(&self) -> bool {
+        self.0.lazy_color()
+    }
+
+    #[cfg(not(target_arch = "spirv"))]
+    #[inline(always)]
+    fn render_lanes_part<P: ParamRead + ?Sized, const GEO: bool, const APP: bool>(
+        &mut self,
+        layout: &ModelLayout,
+        params: &Params<'_, P>,
+        ray: &Ray,
+        ts: &[f32],
+        s: &mut SampleScratch,
+        sdf: &mut [f32; crate::field::mlp::LANES],
+        rgb: &mut [[f32; 3]; crate::field::mlp::LANES],
+    ) {
+        self.0
+            .render_lanes_part::<P, GEO, APP>(layout, params, ray, ts, s, sdf, rgb);
+    }
+
     #[inline(always)]
     fn forward<P: ParamRead + ?Sized>(
         &mut self,
