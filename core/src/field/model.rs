@@ -3193,6 +3193,36 @@ mod tests {
         }
     }
 
+    /// Runs `f` on a stored tape with lanes (portable) over fresh storage for `layout`'s
+    /// decoders `wt`, with the given bounds and lazy-colour switch.
+    fn with_tape<R>(
+        layout: &ModelLayout,
+        wt: &[Vec<f32>; 2],
+        bounds: Option<crate::field::negligible::DecoderBounds>,
+        lazy_color: bool,
+        f: impl FnOnce(&mut StoredTape<'_, PortableLanes>) -> R,
+    ) -> R {
+        let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
+        let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
+        let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
+        let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(layout)];
+        let mut lanes = [MlpLanes::new(), MlpLanes::new()];
+        let mut tape = StoredTape {
+            geometry: &mut geometry,
+            appearance: &mut appearance,
+            geometry_wt: &wt[0],
+            appearance_wt: &wt[1],
+            grid_rows: &rows,
+            grid_kept: &mut kept,
+            hint: core::marker::PhantomData::<PortableLanes>,
+            lanes: Some(&mut lanes),
+            bounds,
+            negligible_counts: Default::default(),
+            lazy_color,
+        };
+        f(&mut tape)
+    }
+
     /// With the decoders' weight bounds the stored tape skips the sample branches whose
     /// contributions all round to 0 quanta: the fixed-point sums are those of the tape without
     /// bounds, bit for bit, on fields whose surfaces are near, far (most samples' cotangents
@@ -3220,35 +3250,20 @@ mod tests {
             };
             let mut runs = Vec::new();
             for b in [None, Some(bounds)] {
-                let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
-                let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
-                let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
-                let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(&layout)];
-                let mut lanes = [MlpLanes::new(), MlpLanes::new()];
-                let mut tape = StoredTape {
-                    geometry: &mut geometry,
-                    appearance: &mut appearance,
-                    geometry_wt: &wt[0],
-                    appearance_wt: &wt[1],
-                    grid_rows: &rows,
-                    grid_kept: &mut kept,
-                    hint: core::marker::PhantomData::<PortableLanes>,
-                    lanes: Some(&mut lanes),
-                    bounds: b,
-                    negligible_counts: Default::default(),
-                    lazy_color: false,
-                };
-                let mut sink = CountingFixedSink {
-                    g: core::array::from_fn(|g| vec![0; p[g].len()]),
-                    calls: 0,
-                };
-                let (mut cache, mut s) = (RayCache::new(), SampleScratch::new());
-                for (i, r) in rays(48).iter().enumerate() {
-                    ray_train(
-                        &layout, &params, r, i as u32, &loss, &mut cache, &mut s, &mut tape,
-                        &mut sink,
-                    );
-                }
+                let sink = with_tape(&layout, &wt, b, false, |tape| {
+                    let mut sink = CountingFixedSink {
+                        g: core::array::from_fn(|g| vec![0; p[g].len()]),
+                        calls: 0,
+                    };
+                    let (mut cache, mut s) = (RayCache::new(), SampleScratch::new());
+                    for (i, r) in rays(48).iter().enumerate() {
+                        ray_train(
+                            &layout, &params, r, i as u32, &loss, &mut cache, &mut s, tape,
+                            &mut sink,
+                        );
+                    }
+                    sink
+                });
                 runs.push(sink);
             }
             assert_eq!(runs[0].g, runs[1].g, "bias {bias}, beta {beta}");
@@ -3287,29 +3302,14 @@ mod tests {
                     for (i, r) in rays(24).iter().enumerate() {
                         let mut outs = Vec::new();
                         for lazy in [false, true] {
-                            let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
-                            let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
-                            let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
-                            let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(&layout)];
-                            let mut lanes = [MlpLanes::new(), MlpLanes::new()];
-                            let mut tape = StoredTape {
-                                geometry: &mut geometry,
-                                appearance: &mut appearance,
-                                geometry_wt: &wt[0],
-                                appearance_wt: &wt[1],
-                                grid_rows: &rows,
-                                grid_kept: &mut kept,
-                                hint: core::marker::PhantomData::<PortableLanes>,
-                                lanes: Some(&mut lanes),
-                                bounds: None,
-                                negligible_counts: Default::default(),
-                                lazy_color: lazy,
-                            };
-                            let (mut cache, mut s) = (RayCache::new(), SampleScratch::new());
-                            ray_forward_taped(
-                                &layout, &params, r, i as u32, 3, false, &mut cache, &mut s,
-                                &mut tape,
-                            );
+                            let cache = with_tape(&layout, &wt, None, lazy, |tape| {
+                                let (mut cache, mut s) = (RayCache::new(), SampleScratch::new());
+                                ray_forward_taped(
+                                    &layout, &params, r, i as u32, 3, false, &mut cache, &mut s,
+                                    tape,
+                                );
+                                cache
+                            });
                             outs.push(cache);
                         }
                         let (a, b) = (&outs[0], &outs[1]);
