@@ -13,6 +13,7 @@
 //! whose products may not fit takes `to_fixed` one contribution at a time.
 
 use himap_core::field::mlp::MAX_WIDTH;
+use himap_core::field::negligible::max_abs;
 use himap_core::train::fixed;
 
 use crate::backend::{to_fixed_host, to_fixed_small};
@@ -122,14 +123,8 @@ impl Layer {
         // `g x` of the sample is at most `|g| xmax` after rounding (rounding is monotone).
         let mut xmax = [0.0f32; CAP];
         for (s, m) in xmax.iter_mut().enumerate().take(n) {
-            let mut hi = 0.0f32;
-            let mut finite = true;
-            for &x in &self.xs[s * stride..s * stride + fi] {
-                let a = x.abs();
-                finite &= a < f32::INFINITY;
-                hi = hi.max(a);
-            }
-            *m = if finite { hi } else { f32::INFINITY };
+            // An f32 value (or 2^-126 for a subnormal maximum): exact as f32.
+            *m = max_abs(&self.xs[s * stride..s * stride + fi]).map_or(f32::INFINITY, |b| b as f32);
         }
         for j in 0..fo {
             let mut fast = [(0u8, 0.0f32, 0.0f32); CAP];
@@ -260,7 +255,7 @@ fn chunk_avx2<const K: usize>(
 const TINY_X: f32 = 3.8685626e25;
 
 /// 2^40, the fixed-point scale.
-const QUANTA: f32 = (1u64 << 40) as f32;
+const QUANTA: f32 = fixed::SCALE;
 
 /// Adds the `i32` sums of groups `c / 8 ..` (`k` of them) into `row` as `i64` (columns past
 /// the row's end are padding and hold 0) and clears them.

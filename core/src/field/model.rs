@@ -1752,39 +1752,34 @@ impl<H: RowHint> StoredTape<'_, H> {
         let Some(bounds) = &self.bounds else {
             return false;
         };
-        let ng = grid::kept_len(&layout.geometry_grid);
-        let (flag, range) = match branch {
-            Branch::Geometry => (0, 2..2 + ng),
-            Branch::Appearance => (1, 2 + ng..grid_tape_len(layout)),
+        // The gate first: a branch with a cotangent of 2^-40 or more costs one compare.
+        let (gated, mlp, w, flag) = match branch {
+            Branch::Geometry => (below_gate(d_sdf), &layout.geometry_mlp, &bounds.geometry, 0),
+            Branch::Appearance => (
+                d_rgb.iter().all(|&d| below_gate(d)),
+                &layout.appearance_mlp,
+                &bounds.appearance,
+                1,
+            ),
         };
-        let kept = match rec {
-            Some(r) if r[flag] == 1.0 && !range.is_empty() => r.get(range),
-            _ => None,
-        };
-        let Some(kept) = kept else {
-            return false;
-        };
-        let skip = match branch {
-            Branch::Geometry => {
-                below_gate(d_sdf)
-                    && branch_negligible(
-                        &layout.geometry_mlp,
-                        act,
-                        &bounds.geometry,
-                        sdf_top(d_sdf),
-                        kept,
-                    )
-            }
-            Branch::Appearance => {
-                d_rgb.iter().all(|&d| below_gate(d))
-                    && branch_negligible(
-                        &layout.appearance_mlp,
-                        act,
-                        &bounds.appearance,
-                        color_top(d_rgb, rgb),
-                        kept,
-                    )
-            }
+        let skip = gated && {
+            let ng = grid::kept_len(&layout.geometry_grid);
+            let range = if flag == 0 {
+                2..2 + ng
+            } else {
+                2 + ng..grid_tape_len(layout)
+            };
+            let kept = match rec {
+                Some(r) if r[flag] == 1.0 && !range.is_empty() => r.get(range),
+                _ => None,
+            };
+            kept.is_some_and(|kept| {
+                let top = match branch {
+                    Branch::Geometry => sdf_top(d_sdf),
+                    Branch::Appearance => color_top(d_rgb, rgb),
+                };
+                branch_negligible(mlp, act, w, top, kept)
+            })
         };
         let (seen, skipped) = self.negligible_counts.get();
         self.negligible_counts
