@@ -245,6 +245,12 @@ pub struct MapperConfig {
     /// the prior (with its triplets and their settings) can shape the final surfaces
     /// without acting on the online updates.
     pub refine_lambda_planar: f32,
+    /// Weight of the per-pixel depth priors during online updates
+    /// ([`MappingLoss::lambda_plane`]; the host's plane priors of plain regions, set through
+    /// [`Backend::set_depth_prior`]). 0 = off.
+    pub lambda_plane: f32,
+    /// Weight of the per-pixel depth priors in the final refinement. 0 = off.
+    pub refine_lambda_plane: f32,
 }
 
 impl MapperConfig {
@@ -297,6 +303,8 @@ impl MapperConfig {
             refine_color_to_geometry: false,
             refine_lambda_color: 0.0,
             refine_lambda_planar: 0.0,
+            lambda_plane: 0.0,
+            refine_lambda_plane: 0.0,
         }
     }
 
@@ -411,6 +419,11 @@ impl MapperConfig {
         {
             return Err(Error::InvalidConfig(
                 "mapper: loss weights must be finite and >= 0",
+            ));
+        }
+        if !(ok(self.lambda_plane) && ok(self.refine_lambda_plane)) {
+            return Err(Error::InvalidConfig(
+                "mapper: lambda_plane and refine_lambda_plane must be finite and >= 0",
             ));
         }
         if !(ok(self.lambda_planar)
@@ -898,7 +911,18 @@ impl<'a, B: Backend> Mapper<'a, B> {
         &mut self,
         observe: &mut F,
     ) -> Result<Option<UpdateReport>, MapperError<B::Error>> {
-        let iters = self.cfg.refine_iters;
+        self.refine_part(self.cfg.refine_iters, observe)
+    }
+
+    /// [`Self::refine`] with `iters` iterations instead of `refine_iters`: a refinement run
+    /// in parts (the host refreshes per-pixel priors between them). With `refine_lr_end` 1
+    /// and parts that are multiples of `refine_block`, the parts in a row are the same
+    /// iterations as one refinement of their sum.
+    pub fn refine_part<F: FnMut(&IterInfo)>(
+        &mut self,
+        iters: u32,
+        observe: &mut F,
+    ) -> Result<Option<UpdateReport>, MapperError<B::Error>> {
         if iters == 0 || !self.st.initialized {
             return Ok(None);
         }
@@ -1543,6 +1567,11 @@ impl<'a, B: Backend> Mapper<'a, B> {
                 beta: self.cfg.planar_beta,
                 gated: self.cfg.planar_gate,
             },
+            lambda_plane: on(match kind {
+                UpdateKind::Init => 0.0,
+                UpdateKind::Online => self.cfg.lambda_plane,
+                UpdateKind::Refine => self.cfg.refine_lambda_plane,
+            }),
         }
     }
 

@@ -318,6 +318,9 @@ pub struct ParallelCpuBackend {
     name: String,
     store: ImageStore,
     images: Vec<u32>,
+    /// Per-pixel depth priors of the image slots ([`Backend::set_depth_prior`]), parallel to
+    /// `images`; empty until a prior is first set.
+    depth_priors: Vec<f32>,
     /// Per [`BLOCK`] of each group: whether its Adam moments may be non-zero. A block whose
     /// moments are all zero and which no worker touched this step has a zero gradient, and
     /// Adam leaves it exactly as it is (`m = v = 0`, the parameter minus `0 / eps`), so the
@@ -667,7 +670,7 @@ fn add_four_avx2(dst: &mut [i64], products: [f32; 4]) {
 
 /// The window's RGBA8 slot images with the CPU's cache hint: the warping loss names the
 /// rows of the next view's patch while it computes the current one (values as `[u32]`'s).
-struct HostPixels<'a>(&'a [u32]);
+struct HostPixels<'a>(&'a [u32], &'a [f32]);
 
 impl SlotPixels for HostPixels<'_> {
     const CPU: bool = true;
@@ -681,6 +684,14 @@ impl SlotPixels for HostPixels<'_> {
     fn prefetch(&self, i: usize) {
         if let Some(row) = self.0.get(i..) {
             prefetch_line(row);
+        }
+    }
+
+    #[inline(always)]
+    fn depth_prior(&self, i: usize) -> f32 {
+        match self.1.get(i) {
+            Some(p) => *p,
+            None => 0.0,
         }
     }
 }
@@ -1120,6 +1131,7 @@ impl ParallelCpuBackend {
             name: format!("cpu ({n} threads)"),
             store: ImageStore::default(),
             images: Vec::new(),
+            depth_priors: Vec::new(),
             times: CpuPassTimes::default(),
             appearance_max: None,
             lazy_color: false,
@@ -1172,6 +1184,7 @@ impl ParallelCpuBackend {
         let mut new = ParallelCpuBackend::new(data, self.adam, self.threads())?;
         new.store = self.store;
         new.images = std::mem::take(&mut self.images);
+        new.depth_priors = std::mem::take(&mut self.depth_priors);
         new.name = std::mem::take(&mut self.name);
         new.times = self.times;
         *self = new;
@@ -1260,7 +1273,7 @@ impl ParallelCpuBackend {
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
     ) -> Result<StepStats, CpuError> {
-        let pixels = HostPixels(&self.images[..]);
+        let pixels = HostPixels(&self.images[..], &self.depth_priors[..]);
         let images = batch.window_images(&self.store, &pixels)?;
         let job = MapPixels::of(batch, &images);
         self.run_job(&job, results)
@@ -1609,8 +1622,20 @@ impl Backend for ParallelCpuBackend {
 
     fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), CpuError> {
         let r = self.store.slot_range(slot, rgba.len())?;
+        if !self.depth_priors.is_empty() {
+            self.depth_priors[r.clone()].fill(0.0);
+        }
         self.images[r].copy_from_slice(rgba);
         Ok(())
+    }
+
+    fn set_depth_prior(&mut self, slot: u32, prior: &[f32]) -> Result<bool, CpuError> {
+        let r = self.store.slot_range(slot, prior.len())?;
+        if self.depth_priors.is_empty() {
+            self.depth_priors = vec![0.0; self.store.total_len()];
+        }
+        self.depth_priors[r].copy_from_slice(prior);
+        Ok(true)
     }
 
     fn slot_texel(&self, slot: u32, u: u32, v: u32) -> u32 {

@@ -229,6 +229,16 @@ fn same_run_config(written: &str, resuming: &str) -> bool {
                     && (online_planar || k == "lambda_planar" || !k.starts_with("planar_"))
             });
         }
+        // without the online plane priors (`mapper.lambda_plane`) `[planes]` acts only in
+        // the refinement
+        let online_planes = t
+            .get("mapper")
+            .and_then(|m| m.get("lambda_plane"))
+            .and_then(|v| v.as_float())
+            .is_some_and(|w| w != 0.0);
+        if !online_planes {
+            t.remove("planes");
+        }
         Some(t)
     }
     written == resuming || matches!((strip(written), strip(resuming)), (Some(a), Some(b)) if a == b)

@@ -19,6 +19,7 @@ pub mod grow;
 pub mod lanes;
 mod layers;
 pub mod mapper_cli;
+pub mod planes;
 pub mod query;
 pub mod select;
 pub mod train_demo;

@@ -23,7 +23,10 @@ fn config() -> Config {
     c.mapper.iters = 3;
     c.mapper.pixels = 128;
     c.mapper.max_keyframes = 8;
-    c.mapper.refine_iters = 0;
+    // a short final refinement with the plane priors refreshed twice (`small`'s weight)
+    c.mapper.refine_iters = 20;
+    c.mapper.refine_block = 5;
+    c.planes.refresh_every = 10;
     c.model.geometry.cell_sizes = vec![0.32, 0.16];
     c.model.appearance.cell_sizes = vec![0.24, 0.08];
     c.scene.default_horizontal = 6.0;
@@ -168,11 +171,22 @@ fn map_command_equals_the_streaming_api() {
             *b = g;
             grew += 1;
         }
-        m.push_frame(&pack_image(&frame.rgb), frame.pose).unwrap();
+        if m.push_frame(&pack_image(&frame.rgb), frame.pose)
+            .unwrap()
+            .is_some()
+        {
+            himap::planes::after_update(m, &cfg).unwrap();
+        }
     }
     assert!(grew > 0, "the walk should grow the 6 m box");
     let mut m = started.unwrap();
     m.flush(&mut |_| {}).unwrap();
+    let mut accepted = 0;
+    himap::planes::refine(&mut m, &cfg, &mut |s| accepted += s.accepted, &mut |_| {}).unwrap();
+    assert!(
+        accepted > 0,
+        "no plane prior was set: the refinement's priors are not covered"
+    );
     let d = m.into_backend().into_data();
     let streamed: Vec<Vec<u32>> = d
         .params

@@ -67,6 +67,7 @@ macro_rules! window_view {
             height,
             slots,
             pixels: $images,
+            priors: words::word($window_words, words::WINDOW_PRIORS),
         };
         let $window = WindowView {
             k: words::intrinsics_from_words($window_words, 0),

@@ -134,7 +134,8 @@ impl Reference {
             m: lens.map(|n| vec![0.0; n]),
             v: lens.map(|n| vec![0.0; n]),
             grad: lens.map(|n| vec![0; n]),
-            images: vec![0; store.total_len()],
+            // with room for per-pixel depth priors after the slots
+            images: vec![0; 2 * store.total_len()],
             store,
         }
     }
@@ -533,6 +534,8 @@ fn mapping_loss(step: u32, n: usize) -> MappingLoss {
         } else {
             PlanarConfig::OFF
         },
+        // the per-pixel depth priors (set on every backend's slots) in steps 0 and 3
+        lambda_plane: if step.is_multiple_of(3) { 0.7 } else { 0.0 },
     }
 }
 
@@ -592,6 +595,22 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
         for (img, &slot) in images.iter().zip(&slots) {
             cpu.upload_frame(slot, img).unwrap();
             b.upload_frame(slot, img).unwrap();
+        }
+        // per-pixel depth priors on all but one frame: a target around 2 m on most pixels,
+        // none (0) on the rest
+        for (f, &slot) in slots.iter().enumerate().skip(1) {
+            let prior: Vec<f32> = (0..store.slot_len())
+                .map(|_| {
+                    let t = 1.0 + 2.0 * rng.unit();
+                    if rng.unit() < 0.8 {
+                        t
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            assert!(cpu.set_depth_prior(slot, &prior).unwrap(), "frame {f}");
+            assert!(b.set_depth_prior(slot, &prior).unwrap(), "frame {f}");
         }
         let steps = 4u32;
         let pixels: Vec<Vec<PixelSample>> = (0..steps)

@@ -476,6 +476,7 @@ fn the_loop_canary_measures_the_budget_and_guards_the_warping_pass() {
                 depth_prior: 1.5,
                 depth_prior_near: 0.0,
                 planar: PlanarConfig::OFF,
+                lambda_plane: 0.0,
             },
             lr: None,
         };

@@ -163,6 +163,11 @@ pub struct VulkanBackend {
     images: Buffer,
     /// A host copy of the image slots, for [`Backend::slot_texel`].
     host_images: Vec<u32>,
+    /// Where the per-pixel depth-prior targets start in `images` (words; 0 = none yet: the
+    /// buffer holds only the slots until [`Backend::set_depth_prior`] is first called), and
+    /// their host copy.
+    priors_at: u32,
+    host_priors: Vec<f32>,
     store: ImageStore,
     /// Staging for device-local buffers that are not host-visible.
     staging: Option<Buffer>,
@@ -481,6 +486,8 @@ impl VulkanBackend {
             samples: None,
             images: Buffer::new(&device, 16, Memory::Device, "the image slots")?,
             host_images: Vec::new(),
+            priors_at: 0,
+            host_priors: Vec::new(),
             status: {
                 let mut b = Buffer::new(&device, 16, Memory::Host, "the step's status words")?;
                 b.write_mapped(0, &[0u8; 16]);
@@ -554,8 +561,12 @@ impl VulkanBackend {
             Self::with_options(layout, params, self.adam, options)?.with_images(self.store)?;
         for slot in 0..self.store.slots {
             let words = self.store.slot_range(slot, self.store.slot_len())?;
-            let img = self.host_images[words].to_vec();
+            let img = self.host_images[words.clone()].to_vec();
             Backend::upload_frame(&mut new, slot, &img)?;
+            if self.priors_at != 0 {
+                let prior = self.host_priors[words].to_vec();
+                Backend::set_depth_prior(&mut new, slot, &prior)?;
+            }
         }
         if self.profiling {
             new.enable_profiling()?;
@@ -689,7 +700,39 @@ impl VulkanBackend {
         }
         self.store = store;
         self.host_images = vec![0; store.total_len()];
+        self.priors_at = 0;
+        self.host_priors = Vec::new();
         Ok(self)
+    }
+
+    /// Grows the image buffer to hold a depth-prior target per pixel after the slots
+    /// (zeroed), the slots copied in from the host copy.
+    fn add_priors(&mut self) -> Result<(), VulkanError> {
+        self.settle()?;
+        let total = self.store.total_len();
+        let bytes = 2 * total as u64 * 4;
+        self.check_binding("the image slots with their depth priors", bytes)?;
+        self.images = Buffer::new(self.gpu.device(), bytes, Memory::Device, "the image slots")?;
+        {
+            let img: &Buffer = &self.images;
+            self.gpu.submit(|r| {
+                r.zero(img);
+                Ok(())
+            })?;
+        }
+        let words = self.host_images.clone();
+        upload_at(
+            &mut self.gpu,
+            &mut self.staging,
+            &mut self.images,
+            0,
+            &u32_bytes(&words),
+        )?;
+        self.priors_at = u32::try_from(total).map_err(|_| {
+            VulkanError::Unsupported("an image store of 2^32 words or more with depth priors")
+        })?;
+        self.host_priors = vec![0.0; total];
+        Ok(())
     }
 
     /// Samples per ray of the layout (`config.max_ray_samples()`, 1..=MAX_SAMPLES), as the
@@ -841,6 +884,7 @@ impl VulkanBackend {
         let size = (self.store.width, self.store.height);
         let (k, poses, loss) = (&batch.k, batch.poses, &batch.loss);
         words::window_to_words(k, size, &slots[..frames], poses, loss, &mut w);
+        w[words::WINDOW_PRIORS] = self.priors_at;
         let bytes = (words::WINDOW * 4) as u64;
         let m = &mut self.maps[f];
         ensure(&self.gpu, &mut m.window, bytes, "the mapping window")?
@@ -1247,7 +1291,38 @@ impl Backend for VulkanBackend {
             &mut self.images,
             (words.start * 4) as u64,
             &u32_bytes(rgba),
-        )
+        )?;
+        if self.priors_at != 0 {
+            // a new frame in the slot: its old priors go
+            self.host_priors[words.clone()].fill(0.0);
+            let zeros = vec![0u32; words.len()];
+            upload_at(
+                &mut self.gpu,
+                &mut self.staging,
+                &mut self.images,
+                ((self.priors_at as usize + words.start) * 4) as u64,
+                &u32_bytes(&zeros),
+            )?;
+        }
+        Ok(())
+    }
+
+    fn set_depth_prior(&mut self, slot: u32, prior: &[f32]) -> Result<bool, VulkanError> {
+        self.settle()?;
+        let words = self.store.slot_range(slot, prior.len())?;
+        if self.priors_at == 0 {
+            self.add_priors()?;
+        }
+        self.host_priors[words.clone()].copy_from_slice(prior);
+        let bits: Vec<u32> = prior.iter().map(|p| p.to_bits()).collect();
+        upload_at(
+            &mut self.gpu,
+            &mut self.staging,
+            &mut self.images,
+            ((self.priors_at as usize + words.start) * 4) as u64,
+            &u32_bytes(&bits),
+        )?;
+        Ok(true)
     }
 
     fn slot_texel(&self, slot: u32, u: u32, v: u32) -> u32 {

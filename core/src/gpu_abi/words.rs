@@ -14,8 +14,8 @@
 //! | [`GridConfig`] | [`GRID_CONFIG`] = 11 | kind, levels, channels, cell_sizes (8) |
 //! | [`ModelConfig`] | [`MODEL_CONFIG`] = 40 | aabb (6), geometry grid config (11), appearance grid config (11), hidden, hidden_layers, dual_path, render_mode, samples, beta_init, grid_init_std, sdf_bias_init, max_depth, min_transmittance, far_samples, far_depth |
 //! | [`ModelLayout`] | [`MODEL_LAYOUT`] = 263 | config, geometry grid layout, appearance grid layout, geometry MLP layout, appearance MLP layout |
-//! | [`MappingLoss`] | [`MAPPING_LOSS`] = 21 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior, depth_prior_near, planar (weight, edge, beta), warp stride, planar gated |
-//! | window | [`WINDOW`] = 448 | intrinsics, frames, image width, image height, slots ([`MAX_WINDOW`]), poses ([`MAX_WINDOW`] x [`POSE`]), mapping loss |
+//! | [`MappingLoss`] | [`MAPPING_LOSS`] = 23 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior, depth_prior_near, planar (weight, edge, beta), warp stride, planar gated, lambda_plane |
+//! | window | [`WINDOW`] = 450 | intrinsics, frames, image width, image height, slots ([`MAX_WINDOW`]), poses ([`MAX_WINDOW`] x [`POSE`]), mapping loss, where the depth priors start in the image buffer ([`WINDOW_PRIORS`]) |
 
 use crate::camera::{Intrinsics, Pose, PoseRead};
 use crate::field::grid::{GridConfig, GridKind, GridLayout, LevelLayout, MAX_LEVELS};
@@ -68,15 +68,19 @@ pub fn split(w: &[u32], k: usize) -> usize {
 }
 
 /// Words of a [`MappingLoss`].
-pub const MAPPING_LOSS: usize = 22;
+pub const MAPPING_LOSS: usize = 23;
 /// Offset of the slot table in the window words.
 pub const WINDOW_SLOTS: usize = INTRINSICS + 3;
 /// Offset of the poses in the window words.
 pub const WINDOW_POSES: usize = WINDOW_SLOTS + MAX_WINDOW;
 /// Offset of the mapping loss in the window words.
 pub const WINDOW_LOSS: usize = WINDOW_POSES + MAX_WINDOW * POSE;
+/// Offset of the per-pixel depth priors' word in the window words: where the targets start
+/// in the image store's buffer (in words, one `f32` per pixel after the RGBA8 slots;
+/// 0 = the store has none).
+pub const WINDOW_PRIORS: usize = WINDOW_LOSS + MAPPING_LOSS;
 /// Words of a mapping window (see the table above).
-pub const WINDOW: usize = WINDOW_LOSS + MAPPING_LOSS;
+pub const WINDOW: usize = WINDOW_PRIORS + 1;
 
 /// Word `i`, or 0 past the end.
 #[inline(always)]
@@ -424,6 +428,7 @@ pub fn mapping_loss_from_words(w: &[u32], at: usize) -> MappingLoss {
             beta: fword(w, at + 19),
             gated: word(w, at + 21) != 0,
         },
+        lambda_plane: fword(w, at + 22),
     }
 }
 
@@ -452,6 +457,7 @@ pub fn mapping_loss_to_words(l: &MappingLoss, w: &mut [u32], at: usize) {
     put(w, at + 19, l.planar.beta.to_bits());
     put(w, at + 20, l.warp.stride);
     put(w, at + 21, l.planar.gated as u32);
+    put(w, at + 22, l.lambda_plane.to_bits());
 }
 
 /// Window frame count, image size and slot table from window words at 0.
@@ -493,6 +499,7 @@ pub fn window_to_words(
         i += 1;
     }
     mapping_loss_to_words(loss, w, WINDOW_LOSS);
+    put(w, WINDOW_PRIORS, 0);
 }
 
 /// The window's poses read straight from the words (a [`PoseRead`] over a storage buffer).

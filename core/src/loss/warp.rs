@@ -104,6 +104,13 @@ pub trait FrameImages {
     /// all inside the image). No value changes; the default does nothing.
     #[inline(always)]
     fn prefetch_row(&self, _frame: usize, _y: u32, _x0: u32, _x1: u32) {}
+    /// Target depth (camera z, m) of the per-pixel depth prior on pixel `(x, y)` of `frame`
+    /// (the host's plane priors, `host/src/planes.rs`; weighted by
+    /// `MappingLoss::lambda_plane`); 0 = none (the default: images without priors).
+    #[inline(always)]
+    fn depth_prior(&self, _frame: usize, _x: u32, _y: u32) -> f32 {
+        0.0
+    }
     /// CPU form only (`warp_view_lanes`): the texels of the four bilinear corners
     /// `(x0, y0), (x1, y0), (x0, y1), (x1, y1)` of every patch point (`cells[p]` =
     /// `[x0, y0, x1, y1]`) of `frame`, as `texels[corner][channel][point]`: the values

@@ -85,6 +85,15 @@ pub trait Backend {
     /// The mapper reads frames through it to place region planarity triplets
     /// (`MapperConfig::planar_region_step`); a device backend answers from a host copy.
     fn slot_texel(&self, slot: u32, u: u32, v: u32) -> u32;
+    /// Sets the per-pixel depth prior of image slot `slot` (a target depth per pixel,
+    /// row-major; 0 = none), which the mapping loss reads with weight
+    /// [`crate::train::pixel::MappingLoss::lambda_plane`]
+    /// ([`crate::loss::warp::FrameImages::depth_prior`]) until the slot's next
+    /// [`Self::upload_frame`], which clears it. `Ok(false)`: the backend has no such priors
+    /// (the default; nothing changes).
+    fn set_depth_prior(&mut self, _slot: u32, _prior: &[f32]) -> Result<bool, Self::Error> {
+        Ok(false)
+    }
     /// One mapping iteration: zero the gradients,
     /// [`pixel_train`](crate::train::pixel::pixel_train) for every pixel
     /// (`pixel_id` = its index in `batch.pixels`), Adam unless the step is not finite
@@ -250,6 +259,7 @@ impl<'a> MapBatch<'a> {
             height: store.height,
             slots: window_slots(self, store)?,
             pixels,
+            priors: 0,
         })
     }
 }

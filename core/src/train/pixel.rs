@@ -65,6 +65,10 @@ pub struct WindowImages<'a, P: SlotPixels + ?Sized> {
     pub slots: [u32; MAX_WINDOW],
     /// The whole slot store.
     pub pixels: &'a P,
+    /// Where the per-pixel depth-prior targets start in `pixels` (words, one `f32` per pixel
+    /// after the slots, as a device buffer holds them; [`crate::gpu_abi::words::WINDOW_PRIORS`]);
+    /// 0: the store's own [`SlotPixels::depth_prior`].
+    pub priors: u32,
 }
 
 /// Read access to slot-major packed RGBA8 pixels (implemented for `[u32]`; a GPU backend
@@ -77,6 +81,12 @@ pub trait SlotPixels {
     /// A cache hint: pixel `i` will be read soon. No value changes; the default does nothing.
     #[inline(always)]
     fn prefetch(&self, _i: usize) {}
+    /// Target depth of the per-pixel depth prior of pixel `i` of the store
+    /// ([`FrameImages::depth_prior`]); the default: 0, none.
+    #[inline(always)]
+    fn depth_prior(&self, _i: usize) -> f32 {
+        0.0
+    }
 }
 
 impl SlotPixels for [u32] {
@@ -111,6 +121,16 @@ impl<P: SlotPixels + ?Sized> FrameImages for WindowImages<'_, P> {
     #[inline(always)]
     fn texel(&self, frame: usize, x: u32, y: u32) -> [f32; 3] {
         unpack_rgba8(self.pixels.pixel(self.index(frame, x, y)))
+    }
+
+    #[inline(always)]
+    fn depth_prior(&self, frame: usize, x: u32, y: u32) -> f32 {
+        let i = self.index(frame, x, y);
+        if self.priors == 0 {
+            self.pixels.depth_prior(i)
+        } else {
+            f32::from_bits(self.pixels.pixel(self.priors as usize + i))
+        }
     }
 
     /// Names the first and the last texel of the span (a patch row spans at most a few
@@ -189,6 +209,10 @@ pub struct MappingLoss {
     /// `3g + 1`, `3g + 2` of the batch; see [`crate::loss::planar`]), scaled by
     /// `color_scale`. `weight` 0 = off.
     pub planar: PlanarConfig,
+    /// Weight of the per-pixel depth prior ([`FrameImages::depth_prior`]: the host's plane
+    /// priors of plain regions), `smoothL1_0.05(D - target)` scaled by `color_scale`, on the
+    /// pixels that have a target. 0 = off.
+    pub lambda_plane: f32,
 }
 
 /// The planarity triplet a batch item belongs to: its three pixels, their rendered depths
@@ -263,6 +287,9 @@ fn pick(v: [f32; 3], m: u32) -> f32 {
         v[2]
     }
 }
+
+/// Transition (m) of the smooth L1 of the per-pixel depth prior ([`FrameImages::depth_prior`]).
+pub const DEPTH_PRIOR_BETA: f32 = 0.05;
 
 /// What one sampled pixel produced.
 #[derive(Clone, Copy, Debug, PartialEq, Default)]
@@ -375,6 +402,15 @@ pub fn pixel_loss<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         let kp = loss.color_scale * loss.lambda_depth_prior;
         result.color_loss += kp * v;
         d_depth += kp * dv;
+    }
+    if loss.lambda_plane != 0.0 && n > 0 {
+        let target = window.images.depth_prior(px.frame as usize, px.u, px.v);
+        if target > 0.0 {
+            let (v, dv) = crate::loss::smooth_l1(out.depth - target, DEPTH_PRIOR_BETA);
+            let kp = loss.color_scale * loss.lambda_plane;
+            result.color_loss += kp * v;
+            d_depth += kp * dv;
+        }
     }
     let m = triplet.member;
     if loss.planar.weight != 0.0
@@ -563,6 +599,7 @@ mod tests {
             height: h,
             slots,
             pixels: &px[..],
+            priors: 0,
         };
         let inv = 1.0f32 / 255.0;
         assert_eq!(imgs.texel(1, 1, 2), [51.0 * inv, 102.0 * inv, 255.0 * inv]);
@@ -587,6 +624,7 @@ mod tests {
             height: h,
             slots,
             pixels: &px[..],
+            priors: 0,
         };
         for frame in 0..2 {
             let mut cells = [[0u32; 4]; PATCH_PIXELS];
@@ -628,6 +666,7 @@ mod tests {
             height: h,
             slots: [0u32; MAX_WINDOW],
             pixels: px,
+            priors: 0,
         });
         WindowView {
             k: Intrinsics {
@@ -641,6 +680,78 @@ mod tests {
             poses,
             images: imgs,
         }
+    }
+
+    /// The per-pixel depth prior (plane priors): `lambda_plane * color_scale *
+    /// smoothL1_0.05(D - target)` on pixels with a target, nothing on those without (0) or with
+    /// the weight 0; the targets read after the slots (the device layout, `priors` > 0) as
+    /// from the store's own `depth_prior`. Hand-computed values.
+    #[test]
+    fn per_pixel_depth_prior_golden() {
+        let (w, h) = (4u32, 3u32);
+        // the slot's pixels, then one target per pixel: pixel 0 at 2 m, pixel 1 none
+        let mut px = std::vec![0u32; 2 * (w * h) as usize];
+        px[(w * h) as usize] = 2.0f32.to_bits();
+        let poses = [Pose::IDENTITY];
+        let mut imgs = None;
+        let mut window = one_frame(w, h, &px, &poses, &mut imgs);
+        let mut loss = MappingLoss {
+            lambda_color: 0.0,
+            lambda_warp: 0.0,
+            color_scale: 0.5,
+            warp_scale: 0.5,
+            color_to_geometry: true,
+            seed: 0,
+            warp: WarpConfig::dim_slam(),
+            lambda_depth_prior: 0.0,
+            depth_prior: 1.5,
+            depth_prior_near: 0.0,
+            planar: PlanarConfig::OFF,
+            lambda_plane: 4.0,
+        };
+        let ray = Ray {
+            origin: [0.0; 3],
+            dir: [0.0, 0.0, 1.0],
+            target: [0.0; 3],
+            target_depth: 0.0,
+        };
+        let run = |window: &WindowView<'_, WindowImages<'_, [u32]>>,
+                   u: u32,
+                   depth: f32,
+                   loss: &MappingLoss| {
+            let mut out = RayOutput::zeroed();
+            out.depth = depth;
+            let (r, _, d) = pixel_loss(
+                window,
+                PixelSample { frame: 0, u, v: 0 },
+                &ray,
+                &out,
+                4,
+                loss,
+                &PixelTriplet::NONE,
+            );
+            (r.color_loss, d)
+        };
+        // the store's own priors: none
+        assert_eq!(run(&window, 0, 2.3, &loss), (0.0, 0.0));
+        let imgs = WindowImages {
+            priors: w * h,
+            ..*window.images
+        };
+        window.images = &imgs;
+        // |D - 2| = 0.3 > 0.05: loss 0.3 - 0.025 = 0.275 times 0.5 * 4 = 2; slope 1 times 2
+        let (l, d) = run(&window, 0, 2.3, &loss);
+        assert!((l - 0.55).abs() < 1e-6 && d == 2.0, "{l} {d}");
+        // D - 2 = -0.02 (inside the quadratic part): 0.5 * 0.0004 / 0.05 * 2, slope -0.4 * 2
+        let (l, d) = run(&window, 0, 1.98, &loss);
+        assert!(
+            (l - 0.008).abs() < 1e-6 && (d + 0.8).abs() < 1e-5,
+            "{l} {d}"
+        );
+        // pixel 1 has no target; the weight 0 turns it off
+        assert_eq!(run(&window, 1, 2.3, &loss), (0.0, 0.0));
+        loss.lambda_plane = 0.0;
+        assert_eq!(run(&window, 0, 2.3, &loss), (0.0, 0.0));
     }
 
     /// The depth prior acts on every pixel without `depth_prior_near`, and with it only on the
@@ -664,6 +775,7 @@ mod tests {
             depth_prior: 1.5,
             depth_prior_near: 0.0,
             planar: PlanarConfig::OFF,
+            lambda_plane: 0.0,
         };
         let ray = Ray {
             origin: [0.0; 3],
@@ -716,6 +828,7 @@ mod tests {
             depth_prior: 1.5,
             depth_prior_near: 0.0,
             planar,
+            lambda_plane: 0.0,
         };
         let ray = Ray {
             origin: [0.0; 3],

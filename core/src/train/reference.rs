@@ -91,12 +91,26 @@ impl<'a> CpuBackend<'a> {
         })
     }
 
-    /// Adds image slot storage: `images` must hold exactly `store.total_len()` words.
+    /// Adds image slot storage: `images` must hold exactly `store.total_len()` words, or
+    /// twice as many for per-pixel depth priors ([`Backend::set_depth_prior`]; a target's
+    /// bits per pixel after the slots, as the Vulkan backend's buffer holds them).
     pub fn with_images(mut self, store: ImageStore, images: &'a mut [u32]) -> Result<Self, Error> {
-        check_len("image slots", images.len(), store.total_len())?;
+        if images.len() != 2 * store.total_len() {
+            check_len("image slots", images.len(), store.total_len())?;
+        }
         self.store = store;
         self.images = images;
         Ok(self)
+    }
+
+    /// Where the depth priors start in the image words (0 = the store has none).
+    fn priors_at(&self) -> u32 {
+        let total = self.store.total_len();
+        if total > 0 && self.images.len() == 2 * total {
+            total as u32
+        } else {
+            0
+        }
     }
 
     /// Forward, losses and backward of a mapping batch, adding into the gradient buffers (not
@@ -106,7 +120,8 @@ impl<'a> CpuBackend<'a> {
         batch: &MapBatch<'_>,
         results: &mut [PixelResult],
     ) -> Result<StepStats, Error> {
-        let images = batch.window_images(&self.store, &*self.images)?;
+        let mut images = batch.window_images(&self.store, &*self.images)?;
+        images.priors = self.priors_at();
         let job = MapPixels::of(batch, &images);
         let (params, mut sink) = params_and_sink(&mut self.groups);
         drive(&self.layout, &params, &mut sink, &job, results, self.t)
@@ -289,8 +304,24 @@ impl Backend for CpuBackend<'_> {
 
     fn upload_frame(&mut self, slot: u32, rgba: &[u32]) -> Result<(), Error> {
         let r = self.store.slot_range(slot, rgba.len())?;
+        let at = self.priors_at() as usize;
+        if at != 0 {
+            self.images[at + r.start..at + r.end].fill(0);
+        }
         self.images[r].copy_from_slice(rgba);
         Ok(())
+    }
+
+    fn set_depth_prior(&mut self, slot: u32, prior: &[f32]) -> Result<bool, Error> {
+        let r = self.store.slot_range(slot, prior.len())?;
+        let at = self.priors_at() as usize;
+        if at == 0 {
+            return Ok(false);
+        }
+        for (w, p) in self.images[at + r.start..at + r.end].iter_mut().zip(prior) {
+            *w = p.to_bits();
+        }
+        Ok(true)
     }
 
     fn slot_texel(&self, slot: u32, u: u32, v: u32) -> u32 {

@@ -178,6 +178,7 @@ where
             let dt = t0.elapsed().as_secs_f64();
             let seen = Seen::of(mapper, &poses);
             rec.record(mapper.backend_mut(), r, &frame, dt, progress, &seen)?;
+            crate::planes::after_update(mapper, cfg)?;
         }
         progress.pb.inc(1);
         last_frame = Some(frame);
@@ -206,11 +207,24 @@ where
                 ));
             }
             let t0 = Instant::now();
-            let rep = mapper
-                .refine(&mut |info: &IterInfo| {
+            let rep = crate::planes::refine(
+                mapper,
+                cfg,
+                &mut |st: &crate::planes::PlaneStats| {
+                    if opts.progress {
+                        progress.warn(&st.describe());
+                    }
+                },
+                &mut |info: &IterInfo| {
                     progress.iteration(pushed - 1, frame.index, info, rec.last_psnr)
-                })
-                .map_err(|e| fail(e, "the final refinement", last_checkpoint))?;
+                },
+            )
+            .map_err(|e| match e {
+                crate::planes::RefineError::Mapper(e) => {
+                    fail(e, "the final refinement", last_checkpoint)
+                }
+                crate::planes::RefineError::Other(e) => e,
+            })?;
             let dt = t0.elapsed().as_secs_f64();
             rec.mapping_s += dt;
             if let (Some(r), true) = (rep, opts.progress) {
