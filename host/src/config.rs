@@ -594,6 +594,7 @@ impl Config {
         if self.scene.min.is_some() != self.scene.max.is_some() {
             bail!("scene.min and scene.max must be given together");
         }
+        self.planes.validate()?;
         if !(self.eval.scale > 0.0 && self.eval.scale <= 1.0) {
             bail!("eval.scale must be in (0, 1]");
         }
