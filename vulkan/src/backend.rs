@@ -688,16 +688,7 @@ impl VulkanBackend {
     /// Allocates `store.slots` image slots of `store.width` x `store.height` RGBA8 pixels for
     /// the mapping window (device-local, zeroed), replacing any previous store.
     pub fn with_images(mut self, store: ImageStore) -> Result<Self, VulkanError> {
-        let bytes = store.total_len() as u64 * 4;
-        self.check_binding("the image slots", bytes)?;
-        self.images = Buffer::new(self.gpu.device(), bytes, Memory::Device, "the image slots")?;
-        {
-            let img: &Buffer = &self.images;
-            self.gpu.submit(|r| {
-                r.zero(img);
-                Ok(())
-            })?;
-        }
+        self.images = self.zeroed_images(store.total_len() as u64 * 4, "the image slots")?;
         self.store = store;
         self.host_images = vec![0; store.total_len()];
         self.priors_at = 0;
@@ -705,21 +696,29 @@ impl VulkanBackend {
         Ok(self)
     }
 
-    /// Grows the image buffer to hold a depth-prior target per pixel after the slots
-    /// (zeroed), the slots copied in from the host copy.
-    fn add_priors(&mut self) -> Result<(), VulkanError> {
-        self.settle()?;
-        let total = self.store.total_len();
-        let bytes = 2 * total as u64 * 4;
-        self.check_binding("the image slots with their depth priors", bytes)?;
-        self.images = Buffer::new(self.gpu.device(), bytes, Memory::Device, "the image slots")?;
+    /// A zeroed device-local image buffer of `bytes` (checked against the binding limit).
+    fn zeroed_images(&mut self, bytes: u64, what: &str) -> Result<Buffer, VulkanError> {
+        self.check_binding(what, bytes)?;
+        let img = Buffer::new(self.gpu.device(), bytes, Memory::Device, "the image slots")?;
         {
-            let img: &Buffer = &self.images;
+            let img: &Buffer = &img;
             self.gpu.submit(|r| {
                 r.zero(img);
                 Ok(())
             })?;
         }
+        Ok(img)
+    }
+
+    /// Grows the image buffer to hold a depth-prior target per pixel after the slots
+    /// (zeroed), the slots copied in from the host copy.
+    fn add_priors(&mut self) -> Result<(), VulkanError> {
+        self.settle()?;
+        let total = self.store.total_len();
+        self.images = self.zeroed_images(
+            2 * total as u64 * 4,
+            "the image slots with their depth priors",
+        )?;
         let words = self.host_images.clone();
         upload_at(
             &mut self.gpu,
