@@ -27,9 +27,6 @@ use serde::{Deserialize, Serialize};
 pub struct PlaneSection {
     /// Largest mean channel step between neighbouring pixels inside a plain region.
     pub step: f32,
-    /// Radius (px) of the box blur applied to the image before the plain test (0 = none):
-    /// sensor noise splits a real camera's plain surfaces into small regions.
-    pub blur: u32,
     /// Smallest region, as a share of the image.
     pub min_area: f32,
     /// Width (px) of the inner border ring whose rendered depth the plane is fitted to.
@@ -54,7 +51,6 @@ impl Default for PlaneSection {
     fn default() -> Self {
         Self {
             step: 0.015,
-            blur: 0,
             min_area: 0.008,
             border: 3,
             inliers: 0.75,
@@ -274,34 +270,6 @@ pub fn plain_regions(
         }
     }
     (label, n)
-}
-
-/// The mean of each pixel's `(2 r + 1)^2` neighbourhood (cut at the image border); `r` 0 is
-/// the image itself.
-pub fn box_blur(rgb: &[[f32; 3]], w: usize, h: usize, r: usize) -> Vec<[f32; 3]> {
-    if r == 0 {
-        return rgb.to_vec();
-    }
-    let pass = |src: &[[f32; 3]], horizontal: bool| -> Vec<[f32; 3]> {
-        let mut out = vec![[0.0f32; 3]; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let (c, n) = if horizontal { (x, w) } else { (y, h) };
-                let (lo, hi) = (c.saturating_sub(r), (c + r).min(n - 1));
-                let mut s = [0.0f32; 3];
-                for k in lo..=hi {
-                    let i = if horizontal { y * w + k } else { k * w + x };
-                    for ch in 0..3 {
-                        s[ch] += src[i][ch];
-                    }
-                }
-                let inv = 1.0 / (hi - lo + 1) as f32;
-                out[y * w + x] = s.map(|v| v * inv);
-            }
-        }
-        out
-    };
-    pass(&pass(rgb, true), false)
 }
 
 /// City-block distance of every pixel to the nearest pixel labelled 0 (`u32::MAX` when there
@@ -533,7 +501,6 @@ where
     let rgb: Vec<[f32; 3]> = (0..w * h)
         .map(|i| unpack_rgba8(backend.slot_texel(slot, (i % w) as u32, (i / w) as u32)))
         .collect();
-    let rgb = box_blur(&rgb, w, h, cfg.blur as usize);
     let min_px = ((cfg.min_area * (w * h) as f32) as usize).max(16);
     let (label, n) = plain_regions(&rgb, w, h, cfg.step, min_px);
     if n == 0 {
@@ -673,25 +640,6 @@ mod tests {
         let (label2, n2) = plain_regions(&rgb2, w, h, 0.015, 30);
         assert_eq!(n2, 2);
         assert!(label2[10] == 0 && label2[11] == 0 && label2[12] == 0);
-    }
-
-    /// The blur spreads one bright pixel over its 3 x 3 neighbourhood (cut at the border) and
-    /// keeps a constant image.
-    #[test]
-    fn box_blur_golden() {
-        let (w, h) = (5, 4);
-        let mut rgb = vec![[0.0f32; 3]; w * h];
-        rgb[w + 1] = [9.0, 0.0, 0.0];
-        let b = box_blur(&rgb, w, h, 1);
-        assert_eq!(b[w + 1][0], 1.0);
-        assert_eq!(b[2 * w + 2][0], 1.0);
-        assert_eq!(b[0][0], 9.0 / 4.0); // a corner averages 2 x 2
-        assert_eq!(b[3 * w + 3][0], 0.0);
-        let c = vec![[0.3f32, 0.5, 0.7]; w * h];
-        assert!(box_blur(&c, w, h, 2)
-            .iter()
-            .all(|p| (p[0] - 0.3).abs() < 1e-6));
-        assert_eq!(box_blur(&rgb, w, h, 0), rgb);
     }
 
     /// The defaults pass the settings check; each bad setting is an error naming it.

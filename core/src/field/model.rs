@@ -2789,32 +2789,17 @@ mod tests {
         let mut s = SampleScratch::new();
         // The stored tape (what the CPU backends run); the recomputing one is checked against
         // it bit for bit by the host's thread-invariance tests.
-        let mut geometry = vec![MlpScratch::new(); MAX_SAMPLES];
-        let mut appearance = vec![MlpScratch::new(); MAX_SAMPLES];
         let wt = transposed(layout, p);
-        let rows = core::cell::RefCell::new([[0.0f32; MAX_WIDTH]; 6]);
-        let mut kept = vec![0.0f32; MAX_SAMPLES * grid_tape_len(layout)];
-        let mut lanes = [MlpLanes::new(), MlpLanes::new()];
-        let mut tape = StoredTape {
-            geometry: &mut geometry,
-            appearance: &mut appearance,
-            geometry_wt: &wt[0],
-            appearance_wt: &wt[1],
-            grid_rows: &rows,
-            grid_kept: &mut kept,
-            hint: core::marker::PhantomData::<PortableLanes>,
-            lanes: Some(&mut lanes),
-            bounds: None,
-            negligible_counts: Default::default(),
-            lazy_color: false,
-        };
-        let mut total = 0.0f64;
-        for (i, r) in rays.iter().enumerate() {
-            total += ray_train(
-                layout, &params, r, i as u32, loss, &mut cache, &mut s, &mut tape, &mut sink,
-            )
-            .loss as f64;
-        }
+        let total = with_tape(layout, &wt, None, false, |tape| {
+            let mut total = 0.0f64;
+            for (i, r) in rays.iter().enumerate() {
+                total += ray_train(
+                    layout, &params, r, i as u32, loss, &mut cache, &mut s, tape, &mut sink,
+                )
+                .loss as f64;
+            }
+            total
+        });
         (total, sink.g)
     }
 

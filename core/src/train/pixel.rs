@@ -652,6 +652,25 @@ mod tests {
         }
     }
 
+    /// A mapping loss with every term off (colour and warp scales `scale`, the depth prior's
+    /// target 1.5 m); tests switch on the term they check.
+    fn terms_off(scale: f32) -> MappingLoss {
+        MappingLoss {
+            lambda_color: 0.0,
+            lambda_warp: 0.0,
+            color_scale: scale,
+            warp_scale: scale,
+            color_to_geometry: true,
+            seed: 0,
+            warp: WarpConfig::dim_slam(),
+            lambda_depth_prior: 0.0,
+            depth_prior: 1.5,
+            depth_prior_near: 0.0,
+            planar: PlanarConfig::OFF,
+            lambda_plane: 0.0,
+        }
+    }
+
     /// A one-frame window over `px` (`w x h`, slot 0) seen by the identity camera with focal
     /// `w / 2` and the principal point at the centre.
     fn one_frame<'a>(
@@ -696,18 +715,8 @@ mod tests {
         let mut imgs = None;
         let mut window = one_frame(w, h, &px, &poses, &mut imgs);
         let mut loss = MappingLoss {
-            lambda_color: 0.0,
-            lambda_warp: 0.0,
-            color_scale: 0.5,
-            warp_scale: 0.5,
-            color_to_geometry: true,
-            seed: 0,
-            warp: WarpConfig::dim_slam(),
-            lambda_depth_prior: 0.0,
-            depth_prior: 1.5,
-            depth_prior_near: 0.0,
-            planar: PlanarConfig::OFF,
             lambda_plane: 4.0,
+            ..terms_off(0.5)
         };
         let ray = Ray {
             origin: [0.0; 3],
@@ -764,18 +773,8 @@ mod tests {
         let mut imgs = None;
         let window = one_frame(w, h, &px, &poses, &mut imgs);
         let mut loss = MappingLoss {
-            lambda_color: 0.0,
-            lambda_warp: 0.0,
-            color_scale: 0.5,
-            warp_scale: 0.5,
-            color_to_geometry: true,
-            seed: 0,
-            warp: WarpConfig::dim_slam(),
             lambda_depth_prior: 2.0,
-            depth_prior: 1.5,
-            depth_prior_near: 0.0,
-            planar: PlanarConfig::OFF,
-            lambda_plane: 0.0,
+            ..terms_off(0.5)
         };
         let ray = Ray {
             origin: [0.0; 3],
@@ -817,18 +816,8 @@ mod tests {
             gated: true,
         };
         let loss = MappingLoss {
-            lambda_color: 0.0,
-            lambda_warp: 0.0,
-            color_scale: 0.25,
-            warp_scale: 0.25,
-            color_to_geometry: true,
-            seed: 0,
-            warp: WarpConfig::dim_slam(),
-            lambda_depth_prior: 0.0,
-            depth_prior: 1.5,
-            depth_prior_near: 0.0,
             planar,
-            lambda_plane: 0.0,
+            ..terms_off(0.25)
         };
         let ray = Ray {
             origin: [0.0; 3],
