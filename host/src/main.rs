@@ -716,8 +716,8 @@ fn synth(args: SynthArgs) -> anyhow::Result<()> {
             let (lo, hi) = s.house.interior();
             println!(
                 "wrote {} frames of {}x{} of a {}-room house ({:.1} x {:.1} x {:.1} m, {:.1} m \
-                 walk) to {} ({} ground-truth triangles; no scene box: the default box policy \
-                 applies)",
+                 walk) to {} ({} ground-truth triangles, {:.1} % of their area seen by the \
+                 frames; no scene box: the default box policy applies)",
                 s.frames,
                 s.intrinsics.width,
                 s.intrinsics.height,
@@ -728,6 +728,7 @@ fn synth(args: SynthArgs) -> anyhow::Result<()> {
                 s.path_m,
                 out.display(),
                 s.mesh_triangles,
+                100.0 * s.mesh_seen_share,
             );
         }
         other => anyhow::bail!("unknown synthetic scene '{other}': use room, house or hall"),
