@@ -4,7 +4,9 @@
 //! are all below [`PlaneSection::step`]), the map's rendered depth on each region's inner
 //! border, a plane fitted to it (RANSAC, then least squares on the inliers; a plane's inverse
 //! depth is affine in the normalised image coordinates), accepted when most of the border
-//! agrees and the agreeing points span the region; every pixel of an accepted region then gets
+//! agrees, the agreeing points span the region and their convex hull covers enough of it (a
+//! plane fitted beside an object in front of a wall, whose edge belongs to the object, is not
+//! extrapolated over the whole wall); every pixel of an accepted region then gets
 //! the plane's depth as a per-pixel prior ([`Backend::set_depth_prior`], read by the mapping
 //! loss as `weight * smoothL1_0.05(D - target)`). Where the border is not one plane (a plain
 //! object meeting a wall of the same colour, ICL's white furniture) the fit fails and the
@@ -39,6 +41,10 @@ pub struct PlaneSection {
     /// Smallest spread (standard deviation along the thinner axis, px at 320 px width) of the
     /// inliers' pixels: a plane fitted to one edge of a region is not constrained across it.
     pub spread: f32,
+    /// Smallest share of the region's pixels inside the convex hull of the inliers' pixels: a
+    /// plane fitted to one corner of a region (the wall beside an object in front of it, whose
+    /// edge belongs to the object) would be extrapolated over the rest (0 = no check).
+    pub cover: f32,
     /// Refinement iterations between two refreshes of the priors (0 = once, before it).
     pub refresh_every: u32,
     /// Border points rendered per region at most.
@@ -57,12 +63,15 @@ impl Default for PlaneSection {
             tol_abs: 0.02,
             tol_rel: 0.02,
             spread: 5.0,
+            cover: COVER,
             refresh_every: 250,
             max_points: 400,
             trials: 100,
         }
     }
 }
+
+const COVER: f32 = 0.3;
 
 /// After an online update (a caller driving [`Mapper::push_frame`] calls it whenever a push
 /// returns a report, as `himap map` does): with the online weight `mapper.lambda_plane` on,
@@ -164,6 +173,9 @@ impl PlaneSection {
         }
         if !(self.spread >= 0.0 && self.spread.is_finite()) {
             bail!("planes.spread must be >= 0");
+        }
+        if !(0.0..=1.0).contains(&self.cover) {
+            bail!("planes.cover must be in [0, 1] (a share of the region)");
         }
         if self.max_points < 12 || self.trials == 0 {
             bail!("planes.max_points must be at least 12 and planes.trials at least 1");
@@ -372,7 +384,7 @@ pub fn region_plane(
     cfg: &PlaneSection,
     spread_px: f32,
     rng: &mut SplitMix,
-) -> Option<InversePlane> {
+) -> Option<(InversePlane, Vec<usize>)> {
     let n = points.len();
     if n < 12 {
         return None;
@@ -428,7 +440,85 @@ pub fn region_plane(
     if small.max(0.0).sqrt() < spread_px as f64 {
         return None;
     }
-    Some(pl)
+    Some((pl, inl))
+}
+
+/// Convex hull (counter-clockwise in image coordinates, no repeated first point) of `pts`
+/// (Andrew's monotone chain); fewer than three distinct points give what there is.
+pub fn convex_hull(pts: &[[f32; 2]]) -> Vec<[f32; 2]> {
+    let mut p: Vec<[f32; 2]> = pts.to_vec();
+    p.sort_by(|a, b| a[0].total_cmp(&b[0]).then(a[1].total_cmp(&b[1])));
+    p.dedup();
+    if p.len() < 3 {
+        return p;
+    }
+    let cross = |o: [f32; 2], a: [f32; 2], b: [f32; 2]| {
+        (a[0] - o[0]) as f64 * (b[1] - o[1]) as f64 - (a[1] - o[1]) as f64 * (b[0] - o[0]) as f64
+    };
+    let chain = |pts: &mut dyn Iterator<Item = [f32; 2]>| {
+        let mut c: Vec<[f32; 2]> = Vec::new();
+        for q in pts {
+            while c.len() >= 2 && cross(c[c.len() - 2], c[c.len() - 1], q) <= 0.0 {
+                c.pop();
+            }
+            c.push(q);
+        }
+        c.pop();
+        c
+    };
+    let mut hull = chain(&mut p.iter().copied());
+    hull.extend(chain(&mut p.iter().rev().copied()));
+    hull
+}
+
+/// The span `[lo, hi]` of columns of the convex polygon `hull` on row `v` (None when the row
+/// misses it).
+fn hull_row_span(hull: &[[f32; 2]], v: f32) -> Option<(f32, f32)> {
+    if hull.len() < 3 {
+        return None;
+    }
+    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    for i in 0..hull.len() {
+        let (a, b) = (hull[i], hull[(i + 1) % hull.len()]);
+        let (ya, yb) = (a[1].min(b[1]), a[1].max(b[1]));
+        if v < ya || v > yb {
+            continue;
+        }
+        let x = if yb > ya {
+            a[0] + (b[0] - a[0]) * (v - a[1]) / (b[1] - a[1])
+        } else {
+            lo = lo.min(a[0].min(b[0]));
+            hi = hi.max(a[0].max(b[0]));
+            continue;
+        };
+        lo = lo.min(x);
+        hi = hi.max(x);
+    }
+    (lo <= hi).then_some((lo, hi))
+}
+
+/// The share of the pixels labelled `region` in `label` (width `w`) that lie inside the convex
+/// polygon `hull`.
+pub fn hull_cover(label: &[u32], w: usize, region: u32, hull: &[[f32; 2]]) -> f32 {
+    let h = label.len() / w.max(1);
+    let (mut inside, mut all) = (0u64, 0u64);
+    for v in 0..h {
+        let span = hull_row_span(hull, v as f32);
+        for u in 0..w {
+            if label[v * w + u] != region {
+                continue;
+            }
+            all += 1;
+            if span.is_some_and(|(lo, hi)| u as f32 >= lo && u as f32 <= hi) {
+                inside += 1;
+            }
+        }
+    }
+    if all == 0 {
+        0.0
+    } else {
+        inside as f32 / all as f32
+    }
 }
 
 /// Recomputes the plane priors of the held frames `frames` (their ids; others keep theirs).
@@ -554,7 +644,17 @@ where
     let mut planes = vec![None; n as usize];
     for r in 0..n as usize {
         stats.regions += 1;
-        planes[r] = region_plane(&pts[r], &pix[r], cfg, spread_px, &mut rng);
+        planes[r] =
+            region_plane(&pts[r], &pix[r], cfg, spread_px, &mut rng).and_then(|(pl, inl)| {
+                if cfg.cover > 0.0 {
+                    let ip: Vec<[f32; 2]> = inl.iter().map(|&i| pix[r][i]).collect();
+                    let hull = convex_hull(&ip);
+                    if hull_cover(&label, w, r as u32 + 1, &hull) < cfg.cover {
+                        return None;
+                    }
+                }
+                Some(pl)
+            });
         if planes[r].is_some() {
             stats.accepted += 1;
         }
@@ -646,8 +746,9 @@ mod tests {
     #[test]
     fn settings_are_checked() {
         assert!(PlaneSection::default().validate().is_ok());
-        let bad: [fn(&mut PlaneSection); 5] = [
+        let bad: [fn(&mut PlaneSection); 6] = [
             |p| p.step = 0.0,
+            |p| p.cover = 1.5,
             |p| p.inliers = 1.5,
             |p| p.border = 0,
             |p| p.max_points = 3,
@@ -659,6 +760,53 @@ mod tests {
             let e = p.validate().unwrap_err().to_string();
             assert!(e.starts_with("planes."), "{e}");
         }
+    }
+
+    /// The hull of the inliers' pixels and the share of a region inside it (`planes.cover`).
+    #[test]
+    fn convex_hull_and_region_cover() {
+        // a square with points inside and on an edge: the hull is its four corners
+        let pts = [
+            [0.0, 0.0],
+            [10.0, 0.0],
+            [5.0, 0.0],
+            [10.0, 10.0],
+            [0.0, 10.0],
+            [4.0, 6.0],
+            [0.0, 10.0],
+        ];
+        let hull = convex_hull(&pts);
+        assert_eq!(hull.len(), 4, "{hull:?}");
+        for c in [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]] {
+            assert!(hull.contains(&c));
+        }
+        assert_eq!(hull_row_span(&hull, 3.0), Some((0.0, 10.0)));
+        assert_eq!(hull_row_span(&hull, 11.0), None);
+        // A 40 x 30 region (everything but a 10 x 10 block in its lower right corner, another
+        // region): the border of the block's two edges covers a small corner of it, the top
+        // and bottom rows all of it.
+        let (w, h) = (40usize, 30usize);
+        let mut label = vec![1u32; w * h];
+        for v in 20..h {
+            for u in 30..w {
+                label[v * w + u] = 2;
+            }
+        }
+        let ell: Vec<[f32; 2]> = (20..h)
+            .map(|v| [29.0, v as f32])
+            .chain((30..w).map(|u| [u as f32, 19.0]))
+            .collect();
+        let c = hull_cover(&label, w, 1, &convex_hull(&ell));
+        assert!(c < 0.1, "{c}");
+        let rows: Vec<[f32; 2]> = (0..w)
+            .flat_map(|u| [[u as f32, 0.0], [u as f32, (h - 1) as f32]])
+            .collect();
+        let c = hull_cover(&label, w, 1, &convex_hull(&rows));
+        assert!((c - 1.0).abs() < 1e-6, "{c}");
+        // the region's own count: 40 * 30 - 100 pixels, half of them in the upper half
+        let top: Vec<[f32; 2]> = vec![[0.0, 0.0], [39.0, 0.0], [39.0, 14.5], [0.0, 14.5]];
+        let c = hull_cover(&label, w, 1, &convex_hull(&top));
+        assert!((c - 600.0 / 1100.0).abs() < 1e-6, "{c}");
     }
 
     /// A border on one plane is accepted with that plane; a border on two planes at
@@ -677,7 +825,7 @@ mod tests {
             pix.push([u as f32, v as f32]);
         }
         let mut rng = SplitMix::new(1);
-        let p = region_plane(&pts, &pix, &cfg, 5.0, &mut rng).expect("one plane");
+        let (p, _) = region_plane(&pts, &pix, &cfg, 5.0, &mut rng).expect("one plane");
         assert!((p.depth(0.0, 0.0).unwrap() - 2.0).abs() < 1e-6);
         // the right half 60 cm closer: no plane holds 75 % of the border
         for q in pts.iter_mut().filter(|q| q[0] > 0.0) {
