@@ -71,7 +71,7 @@ impl Default for PlaneSection {
     }
 }
 
-const COVER: f32 = 0.3;
+const COVER: f32 = 0.15;
 
 /// After an online update (a caller driving [`Mapper::push_frame`] calls it whenever a push
 /// returns a report, as `himap map` does): with the online weight `mapper.lambda_plane` on,
@@ -484,15 +484,15 @@ fn hull_row_span(hull: &[[f32; 2]], v: f32) -> Option<(f32, f32)> {
         if v < ya || v > yb {
             continue;
         }
-        let x = if yb > ya {
-            a[0] + (b[0] - a[0]) * (v - a[1]) / (b[1] - a[1])
+        // the edge's column on row v (a horizontal edge: both its ends)
+        let (xa, xb) = if yb > ya {
+            let x = a[0] + (b[0] - a[0]) * (v - a[1]) / (b[1] - a[1]);
+            (x, x)
         } else {
-            lo = lo.min(a[0].min(b[0]));
-            hi = hi.max(a[0].max(b[0]));
-            continue;
+            (a[0], b[0])
         };
-        lo = lo.min(x);
-        hi = hi.max(x);
+        lo = lo.min(xa.min(xb));
+        hi = hi.max(xa.max(xb));
     }
     (lo <= hi).then_some((lo, hi))
 }
