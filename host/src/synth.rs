@@ -34,7 +34,7 @@ use himap_core::Aabb;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::{DepthImage, RgbImage, REPLICA_DEPTH_SCALE};
+use crate::dataset::{DepthImage, RgbImage, DEPTH_INVALID, REPLICA_DEPTH_SCALE};
 
 /// Smallest distance between the camera path and any object surface (metres).
 pub const CAMERA_CLEARANCE: f32 = 0.5;
@@ -882,7 +882,7 @@ fn write_sequence(
                 .iter()
                 .map(|&t| {
                     let v = t * REPLICA_DEPTH_SCALE + 0.5;
-                    if t > 0.0 && v < 65535.5 {
+                    if t > 0.0 && v < DEPTH_INVALID as f32 {
                         v as u16
                     } else {
                         0

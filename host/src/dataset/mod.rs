@@ -868,8 +868,15 @@ pub fn load_rgb(path: &Path, want: &Intrinsics) -> Result<RgbImage, DatasetError
     })
 }
 
+/// The 16-bit value that marks a depth pixel without a measurement besides 0: the saturated
+/// code, which no sensor reports as a distance. 7-Scenes' Kinect frames use it for invalid
+/// depth (0.03 % of redkitchen's pixels; read as 65.5 m they put ground-truth points tens of
+/// metres outside the scene, which alone added 13 cm to the mesh completion); Replica-style
+/// writers clip farther depth to it (10 m at 6553.5 per metre).
+pub const DEPTH_INVALID: u16 = u16::MAX;
+
 /// Decodes a 16-bit single-channel depth PNG, divides by `scale` (value per metre) and checks
-/// its size.
+/// its size. 0 and [`DEPTH_INVALID`] are no measurement (depth 0).
 pub fn load_depth(path: &Path, scale: f32, want: &Intrinsics) -> Result<DepthImage, DatasetError> {
     let img = open_image(path)?;
     check_size(path, (img.width(), img.height()), want)?;
@@ -879,7 +886,14 @@ pub fn load_depth(path: &Path, scale: f32, want: &Intrinsics) -> Result<DepthIma
             Ok(DepthImage {
                 width: w,
                 height: h,
-                data: buf.as_raw().iter().map(|&v| v as f32 / scale).collect(),
+                data: buf
+                    .as_raw()
+                    .iter()
+                    .map(|&v| match v {
+                        DEPTH_INVALID => 0.0,
+                        v => v as f32 / scale,
+                    })
+                    .collect(),
             })
         }
         other => Err(DatasetError::ImageFormat {

@@ -2,7 +2,7 @@
 //!
 //! ```text
 //! results/frame%06d.jpg (or .png)   colour, 8-bit
-//! results/depth%06d.png             16-bit depth; metres = value / scale; 0 = no measurement
+//! results/depth%06d.png             16-bit depth; metres = value / scale; 0 and 65535 = no measurement
 //! traj.txt                          one row-major 4x4 camera-to-world matrix per line (OpenCV axes)
 //! cam_params.json                   optional {"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}
 //! ```

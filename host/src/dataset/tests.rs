@@ -191,6 +191,33 @@ fn replica_fixture_loads_exact_values() {
 }
 
 #[test]
+fn saturated_depth_is_no_measurement() {
+    // 0 and 65535 (7-Scenes' invalid code, a Replica writer's clip) load as 0; 65534 is a
+    // distance.
+    let dir = replica_fixture(1);
+    write_depth_png(
+        &dir.path().join("results/depth000000.png"),
+        FW,
+        FH,
+        |x, y| match (x, y) {
+            (1, 0) => u16::MAX,
+            (2, 0) => u16::MAX - 1,
+            _ => fixture_depth(0, x, y),
+        },
+    );
+    let d = open_default(dir.path())
+        .unwrap()
+        .frame(0)
+        .unwrap()
+        .depth
+        .unwrap();
+    assert_eq!(d.get(0, 0), 0.0);
+    assert_eq!(d.get(1, 0), 0.0);
+    assert_eq!(d.get(2, 0), 65534.0 / 1000.0);
+    assert_eq!(d.get(3, 0), 1030.0 / 1000.0);
+}
+
+#[test]
 fn range_stride_and_no_depth() {
     let dir = replica_fixture(7);
     let opts = LoadOptions {
@@ -1031,6 +1058,10 @@ fn sevenscenes_redkitchen_loads_and_reprojects() {
     let d = f0.depth.as_ref().unwrap();
     let holes = d.data.iter().filter(|&&z| z == 0.0).count();
     assert!(holes > 0 && holes < d.data.len() / 2, "{holes} holes");
+    // Frame 214 has 3992 pixels of the invalid code 65535 (not 65.5 m): none may load as
+    // a distance beyond the Kinect's range.
+    let far = ds.frame(214).unwrap().depth.unwrap();
+    assert!(far.data.iter().all(|&z| z < 5.0), "depth beyond 5 m");
     let (dz, n) = reprojection_median_dz(&f0, &f10).unwrap();
     eprintln!(
         "7-Scenes: median |dz| frame 0 -> 10: {:.3} mm over {n} pixels",
