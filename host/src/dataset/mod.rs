@@ -870,9 +870,8 @@ pub fn load_rgb(path: &Path, want: &Intrinsics) -> Result<RgbImage, DatasetError
 
 /// The 16-bit value that marks a depth pixel without a measurement besides 0: the saturated
 /// code, which no sensor reports as a distance. 7-Scenes' Kinect frames use it for invalid
-/// depth (0.03 % of redkitchen's pixels; read as 65.5 m they put ground-truth points tens of
-/// metres outside the scene, which alone added 13 cm to the mesh completion); Replica-style
-/// writers clip farther depth to it (10 m at 6553.5 per metre).
+/// depth; Replica-style writers clip farther depth to it (10 m at 6553.5 per metre). The
+/// measurement that found it is in ARCHITECTURE.md.
 pub const DEPTH_INVALID: u16 = u16::MAX;
 
 /// Decodes a 16-bit single-channel depth PNG, divides by `scale` (value per metre) and checks
