@@ -298,6 +298,14 @@ pub struct EvalSection {
     /// most this far (m) behind its rendered depth (`mesh_full.ply` keeps every face of the
     /// observed region).
     pub observed_margin: f32,
+    /// `mesh.ply` is extracted again on a grid this many times finer than `mesh_resolution`
+    /// (1 = not), only in the cells around the faces some view saw (`mesh_full.ply` keeps
+    /// `mesh_resolution`), and coarser when the finer mesh would exceed `mesh_max_faces`
+    /// (its faces estimated as the seen faces times the squared ratio of the spacings). The
+    /// field's SDF is flat near its surfaces: a finer grid places the level set more
+    /// faithfully (ARCHITECTURE.md, issue #11).
+    pub mesh_refine: u32,
+    pub mesh_max_faces: usize,
 }
 
 /// Everything of a mapping run.
@@ -428,6 +436,8 @@ impl Config {
                 cull: "auto".into(),
                 final_every: 10,
                 observed_margin: 0.15,
+                mesh_refine: 1,
+                mesh_max_faces: 2_000_000,
             },
             dataset: crate::dataset::DatasetConfig::default(),
             planes: crate::planes::PlaneSection::default(),
@@ -495,6 +505,8 @@ impl Config {
         c.model.far_samples = 16;
         c.model.far_depth = 20.0;
         c.eval.mesh_resolution = 0.04;
+        // mesh.ply at 1 cm where the views saw surfaces (NICE-SLAM's spacing), at most 2 M faces.
+        c.eval.mesh_refine = 4;
         // The peers' 200 000 surface samples per mesh (50 000 understated a 3-room house's
         // completion ratio by 13 points: ARCHITECTURE.md).
         c.eval.mesh_samples = 200_000;
@@ -606,6 +618,9 @@ impl Config {
         }
         if !(self.eval.mesh_resolution > 0.0 && self.eval.mesh_resolution.is_finite()) {
             bail!("eval.mesh_resolution must be positive");
+        }
+        if self.eval.mesh_refine == 0 {
+            bail!("eval.mesh_refine must be at least 1 (1 = mesh.ply at eval.mesh_resolution)");
         }
         if !["auto", "none", "frustum", "occlusion"].contains(&self.eval.cull.as_str()) {
             bail!("eval.cull must be auto, none, frustum or occlusion");

@@ -615,17 +615,51 @@ pub fn region_mesh<F: FieldSource>(
     resolution: f32,
     level: f32,
 ) -> anyhow::Result<Mesh> {
+    region_mesh_within(
+        field,
+        region,
+        resolution,
+        level,
+        None::<fn([f32; 3]) -> bool>,
+    )
+}
+
+/// [`region_mesh`] where only the grid points `within` accepts are queried: the cubes touching
+/// any other point give no faces (they are marked unknown, see [`crate::mesh::extract_mesh`]).
+pub fn region_mesh_within<F: FieldSource, W: Fn([f32; 3]) -> bool>(
+    field: &mut F,
+    region: Aabb,
+    resolution: f32,
+    level: f32,
+    within: Option<W>,
+) -> anyhow::Result<Mesh> {
     let field = std::cell::RefCell::new(field);
     let err = std::cell::RefCell::new(None::<anyhow::Error>);
     let mesh = crate::mesh::extract_mesh(
         region,
         resolution,
         |p: &[[f32; 3]]| {
-            let mut o = vec![0.0; p.len()];
-            if let Err(e) = field.borrow_mut().field_sdf(p, &mut o) {
-                err.borrow_mut().get_or_insert(e);
+            let mut o = vec![f32::NAN; p.len()];
+            let query = |p: &[[f32; 3]], o: &mut [f32]| {
+                if let Err(e) = field.borrow_mut().field_sdf(p, o) {
+                    err.borrow_mut().get_or_insert(e);
+                }
+                o.iter_mut().for_each(|x| *x -= level);
+            };
+            match &within {
+                None => query(p, &mut o),
+                Some(w) => {
+                    let idx: Vec<usize> = (0..p.len()).filter(|&i| w(p[i])).collect();
+                    let q: Vec<[f32; 3]> = idx.iter().map(|&i| p[i]).collect();
+                    let mut v = vec![0.0; q.len()];
+                    if !q.is_empty() {
+                        query(&q, &mut v);
+                    }
+                    for (&i, x) in idx.iter().zip(v) {
+                        o[i] = x;
+                    }
+                }
             }
-            o.iter_mut().for_each(|x| *x -= level);
             o
         },
         Some(|p: &[[f32; 3]]| {

@@ -310,8 +310,10 @@ pub fn report_html(s: &MapSummary, renders: &[String]) -> String {
         "mesh".into(),
         match &s.mesh {
             Some(m) => format!(
-                "{} faces (level {:.3} m) vs {}: Accuracy {:.2} cm, Completion {:.2} cm, ratio {:.1} %",
+                "{} faces ({:.1} cm grid, level {:.3} m) vs {}: Accuracy {:.2} cm, Completion {:.2} \
+                 cm, ratio {:.1} %",
                 s.mesh_faces,
+                s.mesh_spacing * 100.0,
                 s.mesh_level,
                 s.mesh_ground_truth.as_deref().unwrap_or("?"),
                 m.accuracy_cm,
@@ -483,6 +485,7 @@ mod tests {
             mesh_faces: 1234,
             mesh_full_faces: 2000,
             mesh_level: 0.0,
+            mesh_spacing: 0.04,
             beta: 10.0,
             seconds_total: 12.0,
             seconds_mapping: 10.0,

@@ -83,6 +83,8 @@ pub struct MapSummary {
     pub mesh_full_faces: usize,
     /// SDF level of `mesh.ply` (m) and the trained beta it was derived from.
     pub mesh_level: f32,
+    /// Marching-cubes spacing of `mesh.ply` (m; `mesh_full.ply`'s is `eval.mesh_resolution`).
+    pub mesh_spacing: f32,
     pub beta: f32,
     pub seconds_total: f64,
     pub seconds_mapping: f64,

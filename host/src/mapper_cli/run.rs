@@ -381,6 +381,7 @@ where
         mesh_faces: surface.faces,
         mesh_full_faces: surface.full_faces,
         mesh_level: surface.level,
+        mesh_spacing: surface.spacing,
         beta: surface.beta,
         seconds_total: ctx.t_start.elapsed().as_secs_f64(),
         seconds_mapping: mapping_s,
@@ -780,6 +781,8 @@ struct SurfaceOutputs {
     /// The field level the surface was extracted at (configured or rendered).
     level: f32,
     beta: f32,
+    /// The marching-cubes spacing of `mesh.ply` (m).
+    spacing: f32,
 }
 
 /// Early termination of the renders [`write_meshes`] places the surface with (the level and the
@@ -803,7 +806,7 @@ pub(crate) fn final_meshes<B: MapBackend>(
     poses: &[Pose],
     aabb: Aabb,
     progress: bool,
-) -> anyhow::Result<(crate::mesh::Mesh, crate::mesh::Mesh, f32, f32)>
+) -> anyhow::Result<(crate::mesh::Mesh, crate::mesh::Mesh, f32, f32, f32)>
 where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
@@ -839,27 +842,43 @@ where
     } else {
         f32::INFINITY
     };
-    let mesh = crate::eval::cull_mesh_within(
-        &full,
-        views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
-        Some(cfg.eval.observed_margin),
-        within,
-    );
+    let cull = |m: &crate::mesh::Mesh| {
+        crate::eval::cull_mesh_within(
+            m,
+            views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
+            Some(cfg.eval.observed_margin),
+            within,
+        )
+    };
+    let seen = cull(&full);
+    let t_cull = t0.elapsed().as_secs_f64();
+    let res = cfg.eval.mesh_resolution;
+    let (mesh, spacing) =
+        match refined_spacing(&seen, res, cfg.eval.mesh_refine, cfg.eval.mesh_max_faces) {
+            Some(s) => {
+                let fine = refined_mesh(backend, region, res, &seen, s, level)?;
+                (cull(&fine), s)
+            }
+            None => (seen, res),
+        };
     if progress {
         let t = t0.elapsed().as_secs_f64();
         eprintln!(
-            "mesh: {} faces over the observed region, {} seen by the mapped views (mesh.ply; \
-             mesh_full.ply keeps all) in {t:.1} s (level {t_level:.1} s, {} views rendered \
-             {:.1} s, extraction {:.1} s, culling {:.1} s)",
+            "mesh: {} faces over the observed region ({:.1} cm grid, mesh_full.ply), {} seen by \
+             the mapped views at {:.1} cm (mesh.ply) in {t:.1} s (level {t_level:.1} s, {} \
+             views rendered {:.1} s, extraction {:.1} s, culling {:.1} s, finer grid {:.1} s)",
             full.faces.len(),
+            res * 100.0,
             mesh.faces.len(),
+            spacing * 100.0,
             views.len(),
             t_views - t_level,
             t_full - t_views,
-            t - t_full,
+            t_cull - t_full,
+            t - t_cull,
         );
     }
-    Ok((full, mesh, level, beta))
+    Ok((full, mesh, level, beta, spacing))
 }
 
 /// Extracts the final map's surface: the level from the configuration or from the rendered
@@ -876,7 +895,7 @@ fn write_meshes<B: MapBackend>(
 where
     B::Error: std::error::Error + Send + Sync + 'static,
 {
-    let (full, mesh, level, beta) =
+    let (full, mesh, level, beta, spacing) =
         final_meshes(backend, &opts.config, ek, k, poses, aabb, opts.progress)?;
     full.write_ply(&opts.out.join("mesh_full.ply"))?;
     let path = opts.out.join("mesh.ply");
@@ -887,6 +906,7 @@ where
         full_faces: full.faces.len(),
         level,
         beta,
+        spacing,
     })
 }
 

@@ -54,6 +54,81 @@ pub fn map_mesh<B: MapBackend>(
     crate::query::region_mesh(backend, aabb, resolution, level)
 }
 
+/// How many coarse cells around a seen face [`refined_mesh`] extracts again (measured in
+/// ARCHITECTURE.md: 2 keeps what extracting the whole region finely finds).
+pub const REFINE_REACH: usize = 2;
+
+/// The spacing [`refined_mesh`] extracts `seen` (a mesh on a grid of `resolution`) at:
+/// `resolution / refine`, or coarser so that the finer mesh has about `max_faces` (its faces
+/// grow as the squared ratio of the spacings); `None` when that is not finer than
+/// `resolution` or `seen` is empty.
+pub fn refined_spacing(
+    seen: &crate::mesh::Mesh,
+    resolution: f32,
+    refine: u32,
+    max_faces: usize,
+) -> Option<f32> {
+    if refine <= 1 || seen.faces.is_empty() {
+        return None;
+    }
+    let by_faces = resolution as f64 * (seen.faces.len() as f64 / max_faces.max(1) as f64).sqrt();
+    let s = (resolution as f64 / refine as f64).max(by_faces) as f32;
+    (s < 0.99 * resolution).then_some(s)
+}
+
+/// The surface of `backend` at `level` extracted again on a grid of `spacing` over `region`,
+/// only in the cells of the `resolution` grid over `region` (origin `region.min`) around the
+/// vertices of `seen` (a mesh extracted on that grid): each vertex's cell and those up to
+/// [`REFINE_REACH`] cells away along each axis, so a level set that moves, or a thin part the
+/// coarse grid missed, stays inside. Every other grid point is never queried and its cubes
+/// give no faces.
+pub fn refined_mesh<F: crate::query::FieldSource>(
+    field: &mut F,
+    region: Aabb,
+    resolution: f32,
+    seen: &crate::mesh::Mesh,
+    spacing: f32,
+    level: f32,
+) -> anyhow::Result<crate::mesh::Mesh> {
+    let dims = crate::mesh::extraction_dims(&region, resolution).map(|n| n - 1);
+    let o = region.min;
+    let cell = |p: [f32; 3]| -> [usize; 3] {
+        [0, 1, 2].map(|a| {
+            let c = ((p[a] - o[a]) / resolution).floor();
+            c.clamp(0.0, (dims[a] - 1) as f32) as usize
+        })
+    };
+    let index = |c: [usize; 3]| c[0] + dims[0] * (c[1] + dims[1] * c[2]);
+    let mut active = vec![false; dims[0] * dims[1] * dims[2]];
+    let mut used = vec![false; seen.vertices.len()];
+    for f in &seen.faces {
+        for &v in f {
+            used[v as usize] = true;
+        }
+    }
+    for (v, _) in seen.vertices.iter().zip(&used).filter(|(_, &u)| u) {
+        let c = cell(*v);
+        let r = REFINE_REACH as i64;
+        for dz in -r..=r {
+            for dy in -r..=r {
+                for dx in -r..=r {
+                    let n = [c[0] as i64 + dx, c[1] as i64 + dy, c[2] as i64 + dz];
+                    if (0..3).all(|a| n[a] >= 0 && n[a] < dims[a] as i64) {
+                        active[index(n.map(|x| x as usize))] = true;
+                    }
+                }
+            }
+        }
+    }
+    crate::query::region_mesh_within(
+        field,
+        region,
+        spacing,
+        level,
+        Some(|p: [f32; 3]| active[index(cell(p))]),
+    )
+}
+
 /// Views of the pushed frames [`observed_views`] renders for the observed region.
 pub(super) const OBSERVED_VIEWS: usize = 96;
 
@@ -154,6 +229,7 @@ pub fn mesh_saved_map(
         }
         if let Some(r) = resolution {
             cfg.eval.mesh_resolution = r;
+            cfg.eval.mesh_refine = 1;
         }
         let load = dataset::LoadOptions {
             resize: o.resize,
@@ -168,7 +244,7 @@ pub fn mesh_saved_map(
             k.resized(w, h)
         };
         let poses: Vec<Pose> = (0..ds.len()).map(|i| ds.pose(i)).collect();
-        let (_, mesh, level, _) =
+        let (_, mesh, level, _, _) =
             super::run::final_meshes(&mut backend, &cfg, &ek, &k, &poses, aabb, false)?;
         mesh.write_ply(out)?;
         return Ok((mesh.faces.len(), level));
@@ -182,4 +258,88 @@ pub fn mesh_saved_map(
     )?;
     mesh.write_ply(out)?;
     Ok((mesh.faces.len(), level))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::query::{region_mesh, FnField};
+
+    #[test]
+    fn refined_spacing_is_the_finer_grid_within_the_face_budget() {
+        let mesh = |faces: usize| crate::mesh::Mesh {
+            vertices: vec![[0.0; 3]; 3],
+            faces: vec![[0, 1, 2]; faces],
+            colors: None,
+        };
+        // 4 cm / 4 = 1 cm while 1000 faces * 16 stay under the budget
+        assert_eq!(refined_spacing(&mesh(1000), 0.04, 4, 2_000_000), Some(0.01));
+        // 355 020 seen faces * (4 / s)^2 = 2 M: s = 4 cm * sqrt(0.17751) = 1.6853 cm
+        let s = refined_spacing(&mesh(355_020), 0.04, 4, 2_000_000).unwrap();
+        assert!((s - 0.016_853).abs() < 1e-6, "{s}");
+        // at the budget already, refining off, nothing seen: the coarse grid
+        assert_eq!(refined_spacing(&mesh(2_000_000), 0.04, 4, 2_000_000), None);
+        assert_eq!(refined_spacing(&mesh(1000), 0.04, 1, 2_000_000), None);
+        assert_eq!(refined_spacing(&mesh(0), 0.04, 4, 2_000_000), None);
+    }
+
+    /// A sphere of radius 0.5 extracted at 10 cm, its upper half kept as "seen", extracted again
+    /// at 2.5 cm: the finer faces lie nearer the sphere, cover the seen half, reach at most
+    /// [`REFINE_REACH`] + 1 coarse cells below it, and only grid points near it were queried.
+    #[test]
+    fn refined_mesh_is_finer_only_around_the_seen_faces() {
+        let region = Aabb::new([-1.0; 3], [1.0; 3]);
+        let sphere = |p: &[[f32; 3]]| -> Vec<f32> {
+            p.iter()
+                .map(|q| (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt() - 0.5)
+                .collect()
+        };
+        let coarse = region_mesh(&mut FnField(sphere), region, 0.1, 0.0).unwrap();
+        let seen = coarse.filter_faces(|f| {
+            coarse.faces[f]
+                .iter()
+                .all(|&v| coarse.vertices[v as usize][2] > 0.0)
+        });
+        assert!(!seen.faces.is_empty());
+        let queried = std::cell::Cell::new(0usize);
+        let fine = refined_mesh(
+            &mut FnField(|p: &[[f32; 3]]| {
+                queried.set(queried.get() + p.len());
+                sphere(p)
+            }),
+            region,
+            0.1,
+            &seen,
+            0.025,
+            0.0,
+        )
+        .unwrap();
+        let radius_err = |m: &crate::mesh::Mesh| {
+            m.vertices
+                .iter()
+                .map(|v| ((v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt() - 0.5).abs())
+                .fold(0.0f32, f32::max)
+        };
+        assert!(radius_err(&fine) < radius_err(&seen) / 2.0);
+        assert!(radius_err(&fine) < 0.005, "{}", radius_err(&fine));
+        for v in &seen.vertices {
+            let near = fine
+                .vertices
+                .iter()
+                .any(|w| (0..3).map(|a| (v[a] - w[a]).powi(2)).sum::<f32>() < 0.05f32.powi(2));
+            assert!(near, "no finer surface near the seen vertex {v:?}");
+        }
+        let lowest = fine.vertices.iter().map(|v| v[2]).fold(f32::MAX, f32::min);
+        let seen_lowest = seen.vertices.iter().map(|v| v[2]).fold(f32::MAX, f32::min);
+        assert!(
+            lowest >= seen_lowest - 0.1 * (REFINE_REACH + 1) as f32,
+            "{lowest}"
+        );
+        assert!(
+            lowest < seen_lowest,
+            "the reach extends below the seen faces"
+        );
+        let full = 81usize.pow(3);
+        assert!(queried.get() < full / 2, "{} of {full}", queried.get());
+    }
 }
