@@ -169,7 +169,9 @@ struct MeshArgs {
     /// Output PLY.
     #[arg(long)]
     out: PathBuf,
-    /// Marching-cubes spacing in metres (default: the map's eval.mesh_resolution).
+    /// Marching-cubes spacing in metres (default: the map's eval.mesh_resolution; with
+    /// --observed, the seen surfaces again on eval.mesh_refine's finer grid, as `himap map`
+    /// writes mesh.ply, unless this is given).
     #[arg(long)]
     resolution: Option<f32>,
     /// SDF level of the surface (default: the renderer's surface level for the map's beta).
