@@ -75,7 +75,8 @@ pub fn small_config(render_mode: RenderMode) -> ModelConfig {
 /// A mapping configuration small enough for end-to-end tests on 64x48 synthetic rooms:
 /// `small` with 12 samples per ray, 40 initialisation iterations (20 with colour to the
 /// geometry), 3 online iterations of 128 pixels, 8 keyframes, and a coarse, sparse mesh
-/// evaluation (0.15 m, 2000 samples). Tests change what they exercise on top of it.
+/// evaluation (0.15 m grid, `mesh.ply` again at 3.75 cm, 2000 samples). Tests change what
+/// they exercise on top of it.
 pub fn tiny_map_config() -> crate::config::Config {
     let mut c = crate::config::Config::small();
     c.model.samples = 12;

@@ -75,6 +75,10 @@ fn map_writes_all_outputs_and_the_loss_goes_down() {
     assert_eq!(observed.n_samples, whole.n_samples);
     assert!(observed.completion_cm.is_finite() && observed.completion_cm != whole.completion_cm);
     assert!(json["mesh_observed_gt"]["completion_ratio_pct"].is_number());
+    // mesh.ply on `small`'s finer grid (0.15 m / eval.mesh_refine 4), mesh_full.ply on the coarse.
+    assert_eq!(s.mesh_spacing, 0.15 / 4.0);
+    assert_eq!(json["mesh_spacing"].as_f64().unwrap() as f32, 0.15 / 4.0);
+    assert!(s.mesh_faces > 0 && s.mesh_full_faces > 0);
     // `himap mesh --observed` on the saved map and the frames gives the run's mesh.ply.
     let again = dir.path().join("again.ply");
     let observed = himap::mapper_cli::ObservedBy {
