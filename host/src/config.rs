@@ -305,6 +305,8 @@ pub struct EvalSection {
     /// field's SDF is flat near its surfaces: a finer grid places the level set more
     /// faithfully (ARCHITECTURE.md, issue #11).
     pub mesh_refine: u32,
+    /// The most faces `mesh_refine`'s finer `mesh.ply` should have (a larger seen surface gets
+    /// a coarser grid; estimated before extracting, so a mesh can exceed it by a few %).
     pub mesh_max_faces: usize,
 }
 

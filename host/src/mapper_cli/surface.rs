@@ -76,7 +76,7 @@ pub fn refined_spacing(
     (s < 0.99 * resolution).then_some(s)
 }
 
-/// The surface of `backend` at `level` extracted again on a grid of `spacing` over `region`,
+/// The surface of `field` at `level` extracted again on a grid of `spacing` over `region`,
 /// only in the cells of the `resolution` grid over `region` (origin `region.min`) around the
 /// vertices of `seen` (a mesh extracted on that grid): each vertex's cell and those up to
 /// [`REFINE_REACH`] cells away along each axis, so a level set that moves, or a thin part the
