@@ -221,10 +221,44 @@ where
     extract_mesh_batched(aabb, resolution, sdf, color, EXTRACT_BATCH)
 }
 
+/// [`extract_mesh`] over the grid vertices `lo..hi` (per axis, clamped to
+/// [`extraction_dims`]) of the grid [`extract_mesh`] samples: the same points and vertices bit
+/// for bit, and the faces of the cubes inside the window in the same order. Where every point
+/// outside the window would be unknown (NaN), the mesh equals [`extract_mesh`]'s.
+pub fn extract_mesh_window<S, C>(
+    aabb: Aabb,
+    resolution: f32,
+    lo: [usize; 3],
+    hi: [usize; 3],
+    sdf: S,
+    color: Option<C>,
+) -> Mesh
+where
+    S: Fn(&[[f32; 3]]) -> Vec<f32>,
+    C: Fn(&[[f32; 3]]) -> Vec<[f32; 3]>,
+{
+    extract_window_batched(aabb, resolution, Some((lo, hi)), sdf, color, EXTRACT_BATCH)
+}
+
 /// [`extract_mesh`] with at most `batch` points per query (at least one z-slice).
 pub(crate) fn extract_mesh_batched<S, C>(
     aabb: Aabb,
     resolution: f32,
+    sdf: S,
+    color: Option<C>,
+    batch: usize,
+) -> Mesh
+where
+    S: Fn(&[[f32; 3]]) -> Vec<f32>,
+    C: Fn(&[[f32; 3]]) -> Vec<[f32; 3]>,
+{
+    extract_window_batched(aabb, resolution, None, sdf, color, batch)
+}
+
+fn extract_window_batched<S, C>(
+    aabb: Aabb,
+    resolution: f32,
+    window: Option<([usize; 3], [usize; 3])>,
     sdf: S,
     color: Option<C>,
     batch: usize,
@@ -238,19 +272,26 @@ where
         resolution > 0.0 && resolution.is_finite(),
         "extract_mesh: bad resolution {resolution}"
     );
-    let [nx, ny, nz] = extraction_dims(&aabb, resolution);
+    let dims = extraction_dims(&aabb, resolution);
+    let (lo, hi) = window.unwrap_or(([0; 3], dims));
+    let hi = [0, 1, 2].map(|a| hi[a].min(dims[a]));
+    let lo = [0, 1, 2].map(|a| lo[a].min(hi[a]));
+    let [nx, ny, nz] = [0, 1, 2].map(|a| hi[a] - lo[a]);
     let slice = nx * ny;
+    if slice * nz == 0 {
+        return Mesh::default();
+    }
     let slab = (batch / slice).max(1);
     let o = aabb.min;
-    let mut marcher = SliceMarcher::new(nx, ny, o, resolution, 0.0);
+    let mut marcher = SliceMarcher::new(nx, ny, o, resolution, 0.0).offset(lo);
     let mut pts = Vec::with_capacity(slice * slab.min(nz));
     let mut k0 = 0;
     while k0 < nz {
         let k1 = (k0 + slab).min(nz);
         pts.clear();
-        for k in k0..k1 {
-            for j in 0..ny {
-                for i in 0..nx {
+        for k in lo[2] + k0..lo[2] + k1 {
+            for j in lo[1]..hi[1] {
+                for i in lo[0]..hi[0] {
                     pts.push([
                         o[0] + resolution * i as f32,
                         o[1] + resolution * j as f32,

@@ -615,29 +615,36 @@ pub fn region_mesh<F: FieldSource>(
     resolution: f32,
     level: f32,
 ) -> anyhow::Result<Mesh> {
+    let all = crate::mesh::extraction_dims(&region, resolution);
     region_mesh_within(
         field,
         region,
         resolution,
         level,
+        ([0; 3], all),
         None::<fn([f32; 3]) -> bool>,
     )
 }
 
-/// [`region_mesh`] where only the grid points `within` accepts are queried: the cubes touching
-/// any other point give no faces (they are marked unknown, see [`crate::mesh::extract_mesh`]).
+/// [`region_mesh`] over the grid vertices `window` (`lo..hi` per axis, see
+/// [`crate::mesh::extract_mesh_window`]) where only the grid points `within` accepts are
+/// queried: the cubes touching any other point give no faces (they are marked unknown, see
+/// [`crate::mesh::extract_mesh`]).
 pub fn region_mesh_within<F: FieldSource, W: Fn([f32; 3]) -> bool>(
     field: &mut F,
     region: Aabb,
     resolution: f32,
     level: f32,
+    window: ([usize; 3], [usize; 3]),
     within: Option<W>,
 ) -> anyhow::Result<Mesh> {
     let field = std::cell::RefCell::new(field);
     let err = std::cell::RefCell::new(None::<anyhow::Error>);
-    let mesh = crate::mesh::extract_mesh(
+    let mesh = crate::mesh::extract_mesh_window(
         region,
         resolution,
+        window.0,
+        window.1,
         |p: &[[f32; 3]]| {
             let mut o = vec![f32::NAN; p.len()];
             let query = |p: &[[f32; 3]], o: &mut [f32]| {

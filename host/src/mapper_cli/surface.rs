@@ -106,6 +106,9 @@ pub fn refined_mesh<F: crate::query::FieldSource>(
             used[v as usize] = true;
         }
     }
+    // The active cells' index box: the finer grid is walked only over it, with a finer point
+    // to spare on each side (every point outside it lies in an inactive cell).
+    let (mut cmin, mut cmax) = ([usize::MAX; 3], [0usize; 3]);
     for (v, _) in seen.vertices.iter().zip(&used).filter(|(_, &u)| u) {
         let c = cell(*v);
         let r = REFINE_REACH as i64;
@@ -114,17 +117,29 @@ pub fn refined_mesh<F: crate::query::FieldSource>(
                 for dx in -r..=r {
                     let n = [c[0] as i64 + dx, c[1] as i64 + dy, c[2] as i64 + dz];
                     if (0..3).all(|a| n[a] >= 0 && n[a] < dims[a] as i64) {
-                        active[index(n.map(|x| x as usize))] = true;
+                        let n = n.map(|x| x as usize);
+                        active[index(n)] = true;
+                        for a in 0..3 {
+                            cmin[a] = cmin[a].min(n[a]);
+                            cmax[a] = cmax[a].max(n[a]);
+                        }
                     }
                 }
             }
         }
     }
+    if cmin[0] == usize::MAX {
+        return Ok(crate::mesh::Mesh::default());
+    }
+    let ratio = resolution as f64 / spacing as f64;
+    let lo = cmin.map(|c| ((c as f64 * ratio).floor() as usize).saturating_sub(1));
+    let hi = cmax.map(|c| ((c + 1) as f64 * ratio).ceil() as usize + 2);
     crate::query::region_mesh_within(
         field,
         region,
         spacing,
         level,
+        (lo, hi),
         Some(|p: [f32; 3]| active[index(cell(p))]),
     )
 }

@@ -45,6 +45,8 @@ pub struct SliceMarcher {
     origin: [f32; 3],
     spacing: f32,
     iso: f32,
+    /// Grid index of the first value of the first slice ([`SliceMarcher::offset`]).
+    first: [usize; 3],
     /// Index of the next slice to be pushed.
     k: usize,
     prev: Vec<f32>,
@@ -66,6 +68,7 @@ impl SliceMarcher {
             origin,
             spacing,
             iso,
+            first: [0; 3],
             k: 0,
             prev: Vec::new(),
             xy_prev: vec![NONE; nx * ny * 2],
@@ -73,6 +76,14 @@ impl SliceMarcher {
             z_edges: vec![NONE; nx * ny],
             mesh: Mesh::default(),
         }
+    }
+
+    /// The same marcher over a window of a larger grid: the slices' value `(i, j)` of the
+    /// `k`-th slice pushed is grid vertex `first + (i, j, k)`, at `origin + spacing * (first
+    /// + (i, j, k))` (so the vertices of a window are those of the whole grid, bit for bit).
+    pub fn offset(mut self, first: [usize; 3]) -> Self {
+        self.first = first;
+        self
     }
 
     /// Adds the next z-slice (`nx * ny` values, x fastest) and triangulates the layer of cubes
@@ -169,10 +180,11 @@ impl SliceMarcher {
         // Infinite values (inf / inf) give NaN: fall back to the edge midpoint.
         let t = if t.is_nan() { 0.5 } else { t.clamp(0.0, 1.0) };
         let gk = self.k - 1 + base[2];
+        let f = self.first;
         let mut p = [
-            self.origin[0] + self.spacing * gi as f32,
-            self.origin[1] + self.spacing * gj as f32,
-            self.origin[2] + self.spacing * gk as f32,
+            self.origin[0] + self.spacing * (f[0] + gi) as f32,
+            self.origin[1] + self.spacing * (f[1] + gj) as f32,
+            self.origin[2] + self.spacing * (f[2] + gk) as f32,
         ];
         p[axis] += self.spacing * t;
         let id = self.mesh.vertices.len() as u32;

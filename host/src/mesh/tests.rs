@@ -404,3 +404,76 @@ fn filter_faces_renumbers_and_keeps_colours() {
     assert_eq!(f.faces, vec![[0, 1, 2]]);
     assert_eq!(m.bounds().unwrap(), Aabb::new([0.0; 3], [1.0, 1.0, 0.0]));
 }
+
+/// A window of the grid gives, bit for bit, the mesh of the whole grid whose values outside
+/// the window are unknown (NaN): the same vertices, faces and colours, while only the window's
+/// points are queried.
+#[test]
+fn a_window_equals_the_whole_grid_unknown_outside_it() {
+    let aabb = Aabb::new([-0.5; 3], [0.5; 3]);
+    let h = 0.05;
+    let (lo, hi) = ([3usize, 5, 2], [15usize, 18, 21]);
+    let inside = |p: &[f32; 3]| {
+        (0..3).all(|a| {
+            let i = ((p[a] - aabb.min[a]) / h).round() as usize;
+            (lo[a]..hi[a]).contains(&i)
+        })
+    };
+    let sphere = |p: &[f32; 3]| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - 0.3;
+    let queried = std::cell::Cell::new(0usize);
+    let colour = |p: &[[f32; 3]]| p.iter().map(|q| q.map(|x| x + 0.5)).collect::<Vec<_>>();
+    let window = extract_mesh_window(
+        aabb,
+        h,
+        lo,
+        hi,
+        |p: &[[f32; 3]]| {
+            queried.set(queried.get() + p.len());
+            assert!(
+                p.iter().all(inside),
+                "a point outside the window was queried"
+            );
+            p.iter().map(sphere).collect()
+        },
+        Some(colour),
+    );
+    let whole = extract_mesh(
+        aabb,
+        h,
+        |p: &[[f32; 3]]| {
+            p.iter()
+                .map(|q| if inside(q) { sphere(q) } else { f32::NAN })
+                .collect()
+        },
+        Some(colour),
+    );
+    assert!(!window.faces.is_empty());
+    assert_eq!(window, whole);
+    assert_eq!(queried.get(), 12 * 13 * 19);
+    // beyond the grid, the window is clamped to it; an empty window gives no mesh
+    let dims = extraction_dims(&aabb, h);
+    let clamped = extract_mesh_window(
+        aabb,
+        h,
+        [0; 3],
+        [usize::MAX; 3],
+        |p: &[[f32; 3]]| p.iter().map(sphere).collect(),
+        None::<NoColor>,
+    );
+    let full = extract_mesh(
+        aabb,
+        h,
+        |p: &[[f32; 3]]| p.iter().map(sphere).collect(),
+        None::<NoColor>,
+    );
+    assert_eq!(clamped, full);
+    let empty = extract_mesh_window(
+        aabb,
+        h,
+        dims,
+        dims,
+        |_: &[[f32; 3]]| -> Vec<f32> { panic!("nothing to query") },
+        None::<NoColor>,
+    );
+    assert!(empty.faces.is_empty());
+}
