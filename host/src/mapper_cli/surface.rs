@@ -100,32 +100,24 @@ pub fn refined_mesh<F: crate::query::FieldSource>(
     };
     let index = |c: [usize; 3]| c[0] + dims[0] * (c[1] + dims[1] * c[2]);
     let mut active = vec![false; dims[0] * dims[1] * dims[2]];
-    let mut used = vec![false; seen.vertices.len()];
-    for f in &seen.faces {
-        for &v in f {
-            used[v as usize] = true;
-        }
-    }
     // The active cells' index box: the finer grid is walked only over it, with a finer point
-    // to spare on each side (every point outside it lies in an inactive cell).
+    // to spare on each side (every point outside it lies in an inactive cell). A culled or
+    // extracted mesh has no unreferenced vertices, so every vertex is a seen face's.
     let (mut cmin, mut cmax) = ([usize::MAX; 3], [0usize; 3]);
-    for (v, _) in seen.vertices.iter().zip(&used).filter(|(_, &u)| u) {
+    for v in &seen.vertices {
         let c = cell(*v);
-        let r = REFINE_REACH as i64;
-        for dz in -r..=r {
-            for dy in -r..=r {
-                for dx in -r..=r {
-                    let n = [c[0] as i64 + dx, c[1] as i64 + dy, c[2] as i64 + dz];
-                    if (0..3).all(|a| n[a] >= 0 && n[a] < dims[a] as i64) {
-                        let n = n.map(|x| x as usize);
-                        active[index(n)] = true;
-                        for a in 0..3 {
-                            cmin[a] = cmin[a].min(n[a]);
-                            cmax[a] = cmax[a].max(n[a]);
-                        }
-                    }
+        let lo = c.map(|x| x.saturating_sub(REFINE_REACH));
+        let hi = [0, 1, 2].map(|a| (c[a] + REFINE_REACH).min(dims[a] - 1));
+        for z in lo[2]..=hi[2] {
+            for y in lo[1]..=hi[1] {
+                for x in lo[0]..=hi[0] {
+                    active[index([x, y, z])] = true;
                 }
             }
+        }
+        for a in 0..3 {
+            cmin[a] = cmin[a].min(lo[a]);
+            cmax[a] = cmax[a].max(hi[a]);
         }
     }
     if cmin[0] == usize::MAX {
