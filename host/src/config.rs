@@ -294,9 +294,12 @@ pub struct EvalSection {
     /// report its averages (`final_*` in summary.json), so forgetting of early regions shows
     /// (0 = off).
     pub final_every: u32,
-    /// `mesh.ply` keeps the faces some mapped view saw: a vertex in a view's frustum and at
-    /// most this far (m) behind its rendered depth (`mesh_full.ply` keeps every face of the
-    /// observed region).
+    /// `mesh.ply` keeps the faces some mapped view saw: a face with a vertex within this
+    /// distance (m) of a surface point some view rendered (its depth back-projected;
+    /// `mesh_full.ply` keeps every face of the observed region). A distance in space, not
+    /// along the ray: a surface seen at a grazing angle (a ceiling far ahead of the walk) is
+    /// kept when the mesh lies a few cm off the rendered depth, which along the ray is tens
+    /// of cm.
     pub observed_margin: f32,
     /// `mesh.ply` is extracted again on a grid this many times finer than `mesh_resolution`
     /// (1 = not), only in the cells around the faces some view saw (`mesh_full.ply` keeps
@@ -437,7 +440,7 @@ impl Config {
                 mesh_samples: 200_000,
                 cull: "auto".into(),
                 final_every: 10,
-                observed_margin: 0.15,
+                observed_margin: 0.08,
                 mesh_refine: 1,
                 mesh_max_faces: 2_000_000,
             },
@@ -608,8 +611,8 @@ impl Config {
         if !(s.grow_margin_up >= 0.0 && s.grow_margin_up.is_finite()) {
             bail!("scene.grow_margin_up must be >= 0 (0 = the box never grows along up)");
         }
-        if !(self.eval.observed_margin >= 0.0 && self.eval.observed_margin.is_finite()) {
-            bail!("eval.observed_margin must be >= 0");
+        if !(self.eval.observed_margin > 0.0 && self.eval.observed_margin.is_finite()) {
+            bail!("eval.observed_margin must be positive");
         }
         if self.scene.min.is_some() != self.scene.max.is_some() {
             bail!("scene.min and scene.max must be given together");

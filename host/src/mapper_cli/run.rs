@@ -764,11 +764,7 @@ where
         return Ok(crate::mesh::Mesh::default());
     };
     let full = map_mesh(backend, region, res, level)?;
-    Ok(crate::eval::cull_mesh(
-        &full,
-        views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
-        Some(cfg.eval.observed_margin),
-    ))
+    Ok(SeenSurface::new(&views, cfg.eval.observed_margin, f32::INFINITY).cull(&full))
 }
 
 /// What [`write_meshes`] wrote.
@@ -842,14 +838,8 @@ where
     } else {
         f32::INFINITY
     };
-    let cull = |m: &crate::mesh::Mesh| {
-        crate::eval::cull_mesh_within(
-            m,
-            views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
-            Some(cfg.eval.observed_margin),
-            within,
-        )
-    };
+    let surface = SeenSurface::new(&views, cfg.eval.observed_margin, within);
+    let cull = |m: &crate::mesh::Mesh| surface.cull(m);
     let seen = cull(&full);
     let t_cull = t0.elapsed().as_secs_f64();
     let res = cfg.eval.mesh_resolution;

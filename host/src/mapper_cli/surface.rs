@@ -174,6 +174,69 @@ where
     Ok(out)
 }
 
+/// The surface points the views rendered (each pixel's depth back-projected, at most `max_z`
+/// from its camera along the optical axis), in cubic buckets of side `radius` so that
+/// [`SeenSurface::near`] looks at 27 buckets; points closer than 1 cm to one already kept
+/// are dropped (views overlap).
+pub struct SeenSurface {
+    radius: f32,
+    buckets: std::collections::HashMap<[i32; 3], Vec<[f32; 3]>>,
+}
+
+impl SeenSurface {
+    pub fn new(views: &[(Intrinsics, Pose, Vec<f32>)], radius: f32, max_z: f32) -> Self {
+        let radius = radius.max(1e-3);
+        let mut buckets: std::collections::HashMap<[i32; 3], Vec<[f32; 3]>> =
+            std::collections::HashMap::new();
+        let mut kept = std::collections::HashSet::new();
+        for (k, pose, depth) in views {
+            let w = k.width as usize;
+            for (i, &d) in depth.iter().enumerate() {
+                if !(d > 0.0 && d <= max_z) {
+                    continue;
+                }
+                let c = k.direction((i % w) as f32, (i / w) as f32);
+                let p = pose.transform(c.map(|x| x * d));
+                if kept.insert(p.map(|x| (x / 0.01).floor() as i32)) {
+                    buckets
+                        .entry(p.map(|x| (x / radius).floor() as i32))
+                        .or_default()
+                        .push(p);
+                }
+            }
+        }
+        Self { radius, buckets }
+    }
+
+    /// Whether a rendered surface point lies within the radius of `p`.
+    pub fn near(&self, p: [f32; 3]) -> bool {
+        let r2 = self.radius * self.radius;
+        let key = p.map(|x| (x / self.radius).floor() as i32);
+        (-1..=1).any(|dx| {
+            (-1..=1).any(|dy| {
+                (-1..=1).any(|dz| {
+                    self.buckets
+                        .get(&[key[0] + dx, key[1] + dy, key[2] + dz])
+                        .is_some_and(|b| {
+                            b.iter().any(|q| {
+                                let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
+                                d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= r2
+                            })
+                        })
+                })
+            })
+        })
+    }
+
+    /// `mesh` cut to the faces with a vertex near the rendered surface (unreferenced vertices
+    /// removed).
+    pub fn cull(&self, mesh: &crate::mesh::Mesh) -> crate::mesh::Mesh {
+        use rayon::prelude::*;
+        let seen: Vec<bool> = mesh.vertices.par_iter().map(|&p| self.near(p)).collect();
+        mesh.filter_faces(|f| mesh.faces[f].iter().any(|&i| seen[i as usize]))
+    }
+}
+
 /// The box around the views' cameras and rendered surface points, grown by `margin` and cut
 /// to `aabb`; `None` when it is empty.
 pub fn observed_region(
@@ -271,6 +334,73 @@ pub fn mesh_saved_map(
 mod tests {
     use super::*;
     use crate::query::{region_mesh, FnField};
+
+    /// A floor 0.5 m below a camera looking level (identity pose, y down), seen at grazing
+    /// angles 2-5 m ahead; the view rendered it 3 cm higher than the mesh's level set lies.
+    /// Along the rays that is 12-30 cm, beyond an 8 cm margin in depth everywhere, but in
+    /// space the mesh is 3-6 cm from the rendered points: [`SeenSurface`] keeps the whole
+    /// floor, drops a second floor 0.5 m below it (hidden) and everything outside the
+    /// frustum or beyond `max_z`.
+    #[test]
+    fn seen_surface_keeps_grazing_surfaces_near_the_rendered_points() {
+        let k = Intrinsics {
+            width: 400,
+            height: 300,
+            fx: 500.0,
+            fy: 500.0,
+            cx: 199.5,
+            cy: 149.5,
+        };
+        let depth: Vec<f32> = (0..k.width * k.height)
+            .map(|i| {
+                let b = ((i / k.width) as f32 - k.cy) / k.fy;
+                if b > 0.0 && 0.47 / b < 50.0 {
+                    0.47 / b
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let views = vec![(k, Pose::IDENTITY, depth)];
+        // quads of 5 cm over x in [x0, x0 + 1], z in [2, 5], at height y
+        let mut mesh = crate::mesh::Mesh::default();
+        let mut floor = |x0: f32, y: f32| {
+            let first = mesh.vertices.len() as u32;
+            let (nx, nz) = (21u32, 61u32);
+            for j in 0..nz {
+                for i in 0..nx {
+                    mesh.vertices
+                        .push([x0 + 0.05 * i as f32, y, 2.0 + 0.05 * j as f32]);
+                }
+            }
+            for j in 0..nz - 1 {
+                for i in 0..nx - 1 {
+                    let a = first + j * nx + i;
+                    mesh.faces.push([a, a + 1, a + nx]);
+                    mesh.faces.push([a + 1, a + nx + 1, a + nx]);
+                }
+            }
+            2 * (nx - 1) as usize * (nz - 1) as usize
+        };
+        let seen_floor = floor(-0.5, 0.5);
+        floor(-0.5, 1.0); // hidden below the seen one
+        floor(20.0, 0.5); // outside the frustum
+        let kept = SeenSurface::new(&views, 0.08, f32::INFINITY).cull(&mesh);
+        assert_eq!(kept.faces.len(), seen_floor);
+        assert!(kept.vertices.iter().all(|v| v[1] == 0.5 && v[0] < 1.0));
+        // a margin in depth keeps none of it
+        let by_depth = crate::eval::cull_mesh_within(
+            &mesh,
+            views.iter().map(|(k, p, d)| (*k, *p, Some(d.as_slice()))),
+            Some(0.08),
+            f32::INFINITY,
+        );
+        assert!(by_depth.faces.is_empty());
+        // what a view has beyond max_z is not counted as seen
+        let near = SeenSurface::new(&views, 0.08, 3.0).cull(&mesh);
+        assert!(near.vertices.iter().all(|v| v[2] <= 3.15 && v[1] == 0.5));
+        assert!(!near.faces.is_empty());
+    }
 
     #[test]
     fn refined_spacing_is_the_finer_grid_within_the_face_budget() {
