@@ -764,7 +764,7 @@ where
         return Ok(crate::mesh::Mesh::default());
     };
     let full = map_mesh(backend, region, res, level)?;
-    Ok(SeenSurface::new(&views, cfg.eval.observed_margin, f32::INFINITY).cull(&full))
+    Ok(SeenSurface::new(&views, cfg.eval.observed_margin, f32::INFINITY)?.cull(&full))
 }
 
 /// What [`write_meshes`] wrote.
@@ -838,7 +838,7 @@ where
     } else {
         f32::INFINITY
     };
-    let surface = SeenSurface::new(&views, cfg.eval.observed_margin, within);
+    let surface = SeenSurface::new(&views, cfg.eval.observed_margin, within)?;
     let cull = |m: &crate::mesh::Mesh| surface.cull(m);
     let seen = cull(&full);
     let t_cull = t0.elapsed().as_secs_f64();

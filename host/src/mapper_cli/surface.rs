@@ -175,37 +175,39 @@ where
 }
 
 /// The surface points the views rendered (each pixel's depth back-projected, at most `max_z`
-/// from its camera along the optical axis), in cubic buckets of side `radius` so that
-/// [`SeenSurface::near`] looks at 27 buckets; points closer than 1 cm to one already kept
-/// are dropped (views overlap).
+/// from its camera along the optical axis; [`crate::eval::depth_point_cloud`] at 1 cm, as
+/// views overlap), in cubic buckets of side `radius` so that [`SeenSurface::near`] looks at
+/// 27 buckets.
 pub struct SeenSurface {
     radius: f32,
     buckets: std::collections::HashMap<[i32; 3], Vec<[f32; 3]>>,
 }
 
 impl SeenSurface {
-    pub fn new(views: &[(Intrinsics, Pose, Vec<f32>)], radius: f32, max_z: f32) -> Self {
+    pub fn new(
+        views: &[(Intrinsics, Pose, Vec<f32>)],
+        radius: f32,
+        max_z: f32,
+    ) -> anyhow::Result<Self> {
         let radius = radius.max(1e-3);
+        let within = |d: &[f32]| -> Vec<f32> {
+            d.iter()
+                .map(|&z| if z <= max_z { z } else { 0.0 })
+                .collect()
+        };
+        let cloud = crate::eval::depth_point_cloud(
+            views.iter().map(|(k, p, d)| (within(d), *k, *p)),
+            0.01,
+        )?;
         let mut buckets: std::collections::HashMap<[i32; 3], Vec<[f32; 3]>> =
             std::collections::HashMap::new();
-        let mut kept = std::collections::HashSet::new();
-        for (k, pose, depth) in views {
-            let w = k.width as usize;
-            for (i, &d) in depth.iter().enumerate() {
-                if !(d > 0.0 && d <= max_z) {
-                    continue;
-                }
-                let c = k.direction((i % w) as f32, (i / w) as f32);
-                let p = pose.transform(c.map(|x| x * d));
-                if kept.insert(p.map(|x| (x / 0.01).floor() as i32)) {
-                    buckets
-                        .entry(p.map(|x| (x / radius).floor() as i32))
-                        .or_default()
-                        .push(p);
-                }
-            }
+        for p in cloud {
+            buckets
+                .entry(p.map(|x| (x / radius).floor() as i32))
+                .or_default()
+                .push(p);
         }
-        Self { radius, buckets }
+        Ok(Self { radius, buckets })
     }
 
     /// Whether a rendered surface point lies within the radius of `p`.
@@ -385,7 +387,9 @@ mod tests {
         let seen_floor = floor(-0.5, 0.5);
         floor(-0.5, 1.0); // hidden below the seen one
         floor(20.0, 0.5); // outside the frustum
-        let kept = SeenSurface::new(&views, 0.08, f32::INFINITY).cull(&mesh);
+        let kept = SeenSurface::new(&views, 0.08, f32::INFINITY)
+            .unwrap()
+            .cull(&mesh);
         assert_eq!(kept.faces.len(), seen_floor);
         assert!(kept.vertices.iter().all(|v| v[1] == 0.5 && v[0] < 1.0));
         // a margin in depth keeps none of it
@@ -397,7 +401,7 @@ mod tests {
         );
         assert!(by_depth.faces.is_empty());
         // what a view has beyond max_z is not counted as seen
-        let near = SeenSurface::new(&views, 0.08, 3.0).cull(&mesh);
+        let near = SeenSurface::new(&views, 0.08, 3.0).unwrap().cull(&mesh);
         assert!(near.vertices.iter().all(|v| v[2] <= 3.15 && v[1] == 0.5));
         assert!(!near.faces.is_empty());
     }
