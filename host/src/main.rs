@@ -181,7 +181,7 @@ struct MeshArgs {
     #[arg(long, default_value_t = 0)]
     threads: usize,
     /// Cut the mesh to what this dataset's frames saw, as `himap map` cuts `mesh.ply` (the
-    /// observed region, the rendered depth of up to 96 of its frames; the level from their
+    /// observed region, the rendered depth of up to `eval.observed_views` of its frames; the level from their
     /// renders unless --level is given).
     #[arg(long)]
     observed: Option<PathBuf>,

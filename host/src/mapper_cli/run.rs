@@ -790,7 +790,7 @@ pub(super) const SURFACE_RENDER_TRANSMITTANCE: f32 = 1e-4;
 /// The final map's meshes: the whole observed region's (`mesh_full.ply`) and the part some
 /// mapped view saw (`mesh.ply`), the level they were extracted at and beta. The level comes
 /// from the configuration or from the rendered depth of the views at `ek`; the observed region
-/// and the culling from the depth of up to [`OBSERVED_VIEWS`] of `poses` rendered at a quarter
+/// and the culling from the depth of up to `eval.observed_views` of `poses` rendered at a quarter
 /// of `k`. With samples beyond `model.max_depth` (`model.far_samples`) a face counts as seen
 /// only by a view that has it within `max_depth`: the far samples reach a large space's far
 /// walls, but their bins are metres wide there (ARCHITECTURE.md, issue #11).
@@ -825,7 +825,7 @@ where
     };
     let level = level.unwrap_or_else(|| cfg.surface_level(beta));
     let t_level = t0.elapsed().as_secs_f64();
-    let views = observed_views(backend, k, poses, OBSERVED_VIEWS);
+    let views = observed_views(backend, k, poses, cfg.eval.observed_views as usize);
     backend.set_min_transmittance(t_saved)?;
     let views = views?;
     let t_views = t0.elapsed().as_secs_f64();

@@ -136,9 +136,6 @@ pub fn refined_mesh<F: crate::query::FieldSource>(
     )
 }
 
-/// Views of the pushed frames [`observed_views`] renders for the observed region.
-pub(super) const OBSERVED_VIEWS: usize = 96;
-
 /// Renders the depth of up to `max_views` of `poses` (spread evenly) from the map at a
 /// quarter of `k`'s resolution (at least 64 px wide); a pixel with opacity below 0.5 gets depth
 /// 0 (nothing seen), others `D / O`.
