@@ -285,6 +285,13 @@ pub struct EvalSection {
     /// at `s = ln(beta / ln 2 - 1) / beta` (0.26 m at beta 10) and the field need not reach 0
     /// in front of a surface (ICL gave an empty mesh at level 0).
     pub mesh_level: Option<f32>,
+    /// Without `mesh_level`: the level is estimated again in cubes of this side (m) from the
+    /// rendered surface points of the views that cut `mesh.ply` (their median SDF, within
+    /// `mesh_level_spread` of the whole map's level, interpolated between the cubes), so that
+    /// each room's surface lies where the renders put it (0 = one level for the whole map).
+    pub mesh_level_cell: f32,
+    /// The most a cube's level of `mesh_level_cell` may differ from the whole map's (m).
+    pub mesh_level_spread: f32,
     /// Surface samples per mesh of Accuracy / Completion.
     pub mesh_samples: usize,
     /// Culling of the reconstruction for the mesh metrics: "none", "frustum", "occlusion";
@@ -442,6 +449,8 @@ impl Config {
                 renders: 4,
                 mesh_resolution: 0.02,
                 mesh_level: None,
+                mesh_level_cell: 1.5,
+                mesh_level_spread: 0.1,
                 mesh_samples: 200_000,
                 cull: "auto".into(),
                 final_every: 10,
@@ -619,6 +628,12 @@ impl Config {
         }
         if !(self.eval.observed_margin > 0.0 && self.eval.observed_margin.is_finite()) {
             bail!("eval.observed_margin must be positive");
+        }
+        if !(self.eval.mesh_level_cell >= 0.0 && self.eval.mesh_level_cell.is_finite()) {
+            bail!("eval.mesh_level_cell must be >= 0 (0 = one level for the whole map)");
+        }
+        if !(self.eval.mesh_level_spread >= 0.0 && self.eval.mesh_level_spread.is_finite()) {
+            bail!("eval.mesh_level_spread must be >= 0");
         }
         if self.eval.observed_views == 0 {
             bail!("eval.observed_views must be at least 1");

@@ -607,6 +607,104 @@ pub fn color_at<F: FieldSource>(
     Ok(out)
 }
 
+/// The raw SDF level a surface is extracted at: one for the whole field, or one per place
+/// ([`LocalLevel`]).
+#[derive(Clone, Copy, Debug)]
+pub enum Level<'a> {
+    Global(f32),
+    Local(&'a LocalLevel),
+}
+
+impl Level<'_> {
+    /// The level at `p`.
+    pub fn at(&self, p: [f32; 3]) -> f32 {
+        match self {
+            Level::Global(l) => *l,
+            Level::Local(l) => l.at(p),
+        }
+    }
+}
+
+/// The weight of the whole map's level beside the trilinear weights of [`LocalLevel`]'s cubes.
+pub const LOCAL_LEVEL_GLOBAL_WEIGHT: f32 = 0.01;
+
+/// The renderer's surface level place by place: the median raw SDF at the rendered surface
+/// points in each cube of side `cell` holding at least `min_points` of them, limited to
+/// `global +- spread`, interpolated between the cubes' centres with trilinear weights over
+/// the cubes that have a level (a surface on a cube's face is not pulled halfway to a free
+/// cube beside it), plus [`LOCAL_LEVEL_GLOBAL_WEIGHT`] for the global level, so the level
+/// returns to `global` smoothly away from the cubes. Where the field's slope near its surfaces differs between
+/// rooms, one level for the whole map places some rooms' surfaces centimetres off the
+/// rendered ones (ARCHITECTURE.md, issue #11).
+#[derive(Clone, Debug)]
+pub struct LocalLevel {
+    cell: f32,
+    global: f32,
+    cells: std::collections::HashMap<[i32; 3], f32>,
+}
+
+impl LocalLevel {
+    /// From `points` and the raw SDF at them (`sdf`, same length).
+    pub fn new(
+        points: &[[f32; 3]],
+        sdf: &[f32],
+        cell: f32,
+        global: f32,
+        spread: f32,
+        min_points: usize,
+    ) -> Self {
+        let mut bins: std::collections::HashMap<[i32; 3], Vec<f32>> = Default::default();
+        for (p, &s) in points.iter().zip(sdf) {
+            if s.is_finite() {
+                bins.entry(p.map(|x| (x / cell).floor() as i32))
+                    .or_default()
+                    .push(s);
+            }
+        }
+        let cells = bins
+            .into_iter()
+            .filter(|(_, v)| v.len() >= min_points.max(1))
+            .map(|(k, mut v)| {
+                v.sort_by(f32::total_cmp);
+                (k, v[v.len() / 2].clamp(global - spread, global + spread))
+            })
+            .collect();
+        Self {
+            cell,
+            global,
+            cells,
+        }
+    }
+
+    /// Cubes with a level of their own.
+    pub fn cells(&self) -> usize {
+        self.cells.len()
+    }
+
+    /// The level at `p`.
+    pub fn at(&self, p: [f32; 3]) -> f32 {
+        let g = p.map(|x| x / self.cell - 0.5);
+        let b = g.map(f32::floor);
+        let f = [g[0] - b[0], g[1] - b[1], g[2] - b[2]];
+        let (mut sum, mut weight) = (
+            LOCAL_LEVEL_GLOBAL_WEIGHT * self.global,
+            LOCAL_LEVEL_GLOBAL_WEIGHT,
+        );
+        for c in 0..8usize {
+            let o = [c & 1, (c >> 1) & 1, (c >> 2) & 1];
+            let key = [0, 1, 2].map(|a| b[a] as i32 + o[a] as i32);
+            if let Some(&l) = self.cells.get(&key) {
+                let w: f32 = (0..3)
+                    .map(|a| if o[a] == 1 { f[a] } else { 1.0 - f[a] })
+                    .product();
+                sum += w * l;
+                weight += w;
+            }
+        }
+        sum / weight
+    }
+}
+
 /// The mesh of `field`'s surface at `level` inside `region`, on a grid of `resolution`
 /// (marching cubes, vertex colours from the map; normals towards free space).
 pub fn region_mesh<F: FieldSource>(
@@ -614,6 +712,16 @@ pub fn region_mesh<F: FieldSource>(
     region: Aabb,
     resolution: f32,
     level: f32,
+) -> anyhow::Result<Mesh> {
+    region_mesh_at(field, region, resolution, Level::Global(level))
+}
+
+/// [`region_mesh`] at a [`Level`] that may vary from place to place.
+pub fn region_mesh_at<F: FieldSource>(
+    field: &mut F,
+    region: Aabb,
+    resolution: f32,
+    level: Level<'_>,
 ) -> anyhow::Result<Mesh> {
     let all = crate::mesh::extraction_dims(&region, resolution);
     region_mesh_within(
@@ -634,7 +742,7 @@ pub fn region_mesh_within<F: FieldSource, W: Fn([f32; 3]) -> bool>(
     field: &mut F,
     region: Aabb,
     resolution: f32,
-    level: f32,
+    level: Level<'_>,
     window: ([usize; 3], [usize; 3]),
     within: Option<W>,
 ) -> anyhow::Result<Mesh> {
@@ -651,7 +759,10 @@ pub fn region_mesh_within<F: FieldSource, W: Fn([f32; 3]) -> bool>(
                 if let Err(e) = field.borrow_mut().field_sdf(p, o) {
                     err.borrow_mut().get_or_insert(e);
                 }
-                o.iter_mut().for_each(|x| *x -= level);
+                match level {
+                    Level::Global(l) => o.iter_mut().for_each(|x| *x -= l),
+                    Level::Local(_) => o.iter_mut().zip(p).for_each(|(x, q)| *x -= level.at(*q)),
+                }
             };
             match &within {
                 None => query(p, &mut o),

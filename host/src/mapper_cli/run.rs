@@ -763,7 +763,7 @@ where
     let Some(region) = observed_region(&views, aabb, 2.0 * res) else {
         return Ok(crate::mesh::Mesh::default());
     };
-    let full = map_mesh(backend, region, res, level)?;
+    let full = map_mesh(backend, region, res, crate::query::Level::Global(level))?;
     Ok(SeenSurface::new(&views, cfg.eval.observed_margin, f32::INFINITY)?.cull(&full))
 }
 
@@ -830,14 +830,30 @@ where
     let views = views?;
     let t_views = t0.elapsed().as_secs_f64();
     let region = observed_region(&views, aabb, 2.0 * cfg.eval.mesh_resolution).unwrap_or(aabb);
-    let full = map_mesh(backend, region, cfg.eval.mesh_resolution, level)?;
-    let t_full = t0.elapsed().as_secs_f64();
     let mcfg = backend.layout().config;
     let within = if mcfg.has_far_segment() {
         mcfg.max_depth
     } else {
         f32::INFINITY
     };
+    // The level place by place (unless the configuration fixes one).
+    let local = match (cfg.eval.mesh_level, cfg.eval.mesh_level_cell) {
+        (None, cell) if cell > 0.0 => Some(local_surface_level(
+            backend,
+            &views,
+            within,
+            cell,
+            level,
+            cfg.eval.mesh_level_spread,
+        )?),
+        _ => None,
+    };
+    let at = local.as_ref().map_or(
+        crate::query::Level::Global(level),
+        crate::query::Level::Local,
+    );
+    let full = map_mesh(backend, region, cfg.eval.mesh_resolution, at)?;
+    let t_full = t0.elapsed().as_secs_f64();
     let surface = SeenSurface::new(&views, cfg.eval.observed_margin, within)?;
     let cull = |m: &crate::mesh::Mesh| surface.cull(m);
     let seen = cull(&full);
@@ -846,7 +862,7 @@ where
     let (mesh, spacing) =
         match refined_spacing(&seen, res, cfg.eval.mesh_refine, cfg.eval.mesh_max_faces) {
             Some(s) => {
-                let fine = refined_mesh(backend, region, res, &seen, s, level)?;
+                let fine = refined_mesh(backend, region, res, &seen, s, at)?;
                 (cull(&fine), s)
             }
             None => (seen, res),
@@ -855,12 +871,14 @@ where
         let t = t0.elapsed().as_secs_f64();
         eprintln!(
             "mesh: {} faces over the observed region ({:.1} cm grid, mesh_full.ply), {} seen by \
-             the mapped views at {:.1} cm (mesh.ply) in {t:.1} s (level {t_level:.1} s, {} \
-             views rendered {:.1} s, extraction {:.1} s, culling {:.1} s, finer grid {:.1} s)",
+             the mapped views at {:.1} cm (mesh.ply), the level estimated again in {} cubes, in \
+             {t:.1} s (level {t_level:.1} s, {} \
+             views rendered {:.1} s, local level and extraction {:.1} s, culling {:.1} s, finer grid {:.1} s)",
             full.faces.len(),
             res * 100.0,
             mesh.faces.len(),
             spacing * 100.0,
+            local.as_ref().map_or(0, |l| l.cells()),
             views.len(),
             t_views - t_level,
             t_full - t_views,

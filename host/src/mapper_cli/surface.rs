@@ -49,9 +49,44 @@ pub fn map_mesh<B: MapBackend>(
     backend: &mut B,
     aabb: Aabb,
     resolution: f32,
-    level: f32,
+    level: crate::query::Level<'_>,
 ) -> anyhow::Result<crate::mesh::Mesh> {
-    crate::query::region_mesh(backend, aabb, resolution, level)
+    crate::query::region_mesh_at(backend, aabb, resolution, level)
+}
+
+/// Rendered surface points a cube needs for a level of its own in [`local_surface_level`].
+pub const LOCAL_LEVEL_POINTS: usize = 200;
+
+/// The renderer's surface level place by place ([`crate::query::LocalLevel`]) from the
+/// rendered depth of `views` (each pixel's point at most `max_z` from its camera): cubes of
+/// side `cell`, each at most `spread` from the whole map's level `global`.
+pub fn local_surface_level<B: MapBackend>(
+    backend: &mut B,
+    views: &[(Intrinsics, Pose, Vec<f32>)],
+    max_z: f32,
+    cell: f32,
+    global: f32,
+    spread: f32,
+) -> anyhow::Result<crate::query::LocalLevel> {
+    let mut pts = Vec::new();
+    for (k, pose, depth) in views {
+        for (i, &z) in depth.iter().enumerate() {
+            if z > 0.0 && z <= max_z {
+                let (u, v) = ((i % k.width as usize) as f32, (i / k.width as usize) as f32);
+                pts.push(pose.transform(k.direction(u, v).map(|x| x * z)));
+            }
+        }
+    }
+    let mut sdf = vec![0.0f32; pts.len()];
+    backend.query_sdf(&pts, &mut sdf)?;
+    Ok(crate::query::LocalLevel::new(
+        &pts,
+        &sdf,
+        cell,
+        global,
+        spread,
+        LOCAL_LEVEL_POINTS,
+    ))
 }
 
 /// How many coarse cells around a seen face [`refined_mesh`] extracts again (measured in
@@ -88,7 +123,7 @@ pub fn refined_mesh<F: crate::query::FieldSource>(
     resolution: f32,
     seen: &crate::mesh::Mesh,
     spacing: f32,
-    level: f32,
+    level: crate::query::Level<'_>,
 ) -> anyhow::Result<crate::mesh::Mesh> {
     let dims = crate::mesh::extraction_dims(&region, resolution).map(|n| n - 1);
     let o = region.min;
@@ -323,7 +358,7 @@ pub fn mesh_saved_map(
         &mut backend,
         aabb,
         resolution.unwrap_or(cfg.eval.mesh_resolution),
-        level,
+        crate::query::Level::Global(level),
     )?;
     mesh.write_ply(out)?;
     Ok((mesh.faces.len(), level))
@@ -449,7 +484,7 @@ mod tests {
             0.1,
             &seen,
             0.025,
-            0.0,
+            crate::query::Level::Global(0.0),
         )
         .unwrap();
         let radius_err = |m: &crate::mesh::Mesh| {
