@@ -836,12 +836,12 @@ where
     } else {
         f32::INFINITY
     };
+    let surface = SeenSurface::new(&views, cfg.eval.observed_margin, within)?;
     // The level place by place (unless the configuration fixes one).
     let local = match (cfg.eval.mesh_level, cfg.eval.mesh_level_cell) {
         (None, cell) if cell > 0.0 => Some(local_surface_level(
             backend,
-            &views,
-            within,
+            &surface,
             cell,
             level,
             cfg.eval.mesh_level_spread,
@@ -854,7 +854,6 @@ where
     );
     let full = map_mesh(backend, region, cfg.eval.mesh_resolution, at)?;
     let t_full = t0.elapsed().as_secs_f64();
-    let surface = SeenSurface::new(&views, cfg.eval.observed_margin, within)?;
     let cull = |m: &crate::mesh::Mesh| surface.cull(m);
     let seen = cull(&full);
     let t_cull = t0.elapsed().as_secs_f64();

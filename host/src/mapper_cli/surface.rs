@@ -58,25 +58,16 @@ pub fn map_mesh<B: MapBackend>(
 pub const LOCAL_LEVEL_POINTS: usize = 200;
 
 /// The renderer's surface level place by place ([`crate::query::LocalLevel`]) from the
-/// rendered depth of `views` (each pixel's point at most `max_z` from its camera): cubes of
-/// side `cell`, each at most `spread` from the whole map's level `global`.
+/// views' rendered surface points (`surface`, one per 1 cm voxel): cubes of side `cell`, each
+/// at most `spread` from the whole map's level `global`.
 pub fn local_surface_level<B: MapBackend>(
     backend: &mut B,
-    views: &[(Intrinsics, Pose, Vec<f32>)],
-    max_z: f32,
+    surface: &SeenSurface,
     cell: f32,
     global: f32,
     spread: f32,
 ) -> anyhow::Result<crate::query::LocalLevel> {
-    let mut pts = Vec::new();
-    for (k, pose, depth) in views {
-        for (i, &z) in depth.iter().enumerate() {
-            if z > 0.0 && z <= max_z {
-                let (u, v) = ((i % k.width as usize) as f32, (i / k.width as usize) as f32);
-                pts.push(pose.transform(k.direction(u, v).map(|x| x * z)));
-            }
-        }
-    }
+    let pts: Vec<[f32; 3]> = surface.points().collect();
     let mut sdf = vec![0.0f32; pts.len()];
     backend.query_sdf(&pts, &mut sdf)?;
     Ok(crate::query::LocalLevel::new(
@@ -240,6 +231,11 @@ impl SeenSurface {
                 .push(p);
         }
         Ok(Self { radius, buckets })
+    }
+
+    /// The rendered surface points (in no particular order).
+    pub fn points(&self) -> impl Iterator<Item = [f32; 3]> + '_ {
+        self.buckets.values().flatten().copied()
     }
 
     /// Whether a rendered surface point lies within the radius of `p`.
