@@ -81,7 +81,8 @@ pub struct MapSummary {
     pub mesh_faces: usize,
     /// Faces of `mesh_full.ply` (the extraction region before the visibility culling).
     pub mesh_full_faces: usize,
-    /// SDF level of `mesh.ply` (m) and the trained beta it was derived from.
+    /// SDF level of `mesh.ply` (m) and the trained beta it was derived from: the whole map's;
+    /// with `eval.mesh_level_cell` each cube's level lies within `eval.mesh_level_spread` of it.
     pub mesh_level: f32,
     /// Marching-cubes spacing of `mesh.ply` (m; `mesh_full.ply`'s is `eval.mesh_resolution`).
     pub mesh_spacing: f32,
