@@ -633,9 +633,9 @@ pub const LOCAL_LEVEL_GLOBAL_WEIGHT: f32 = 0.01;
 /// `global +- spread`, interpolated between the cubes' centres with trilinear weights over
 /// the cubes that have a level (a surface on a cube's face is not pulled halfway to a free
 /// cube beside it), plus [`LOCAL_LEVEL_GLOBAL_WEIGHT`] for the global level, so the level
-/// returns to `global` smoothly away from the cubes. Where the field's slope near its surfaces differs between
-/// rooms, one level for the whole map places some rooms' surfaces centimetres off the
-/// rendered ones (ARCHITECTURE.md, issue #11).
+/// returns to `global` smoothly away from the cubes. Where the field's slope near its
+/// surfaces differs between rooms, one level for the whole map places some rooms' surfaces
+/// centimetres off the rendered ones (ARCHITECTURE.md, issue #11).
 #[derive(Clone, Debug)]
 pub struct LocalLevel {
     cell: f32,
@@ -759,10 +759,7 @@ pub fn region_mesh_within<F: FieldSource, W: Fn([f32; 3]) -> bool>(
                 if let Err(e) = field.borrow_mut().field_sdf(p, o) {
                     err.borrow_mut().get_or_insert(e);
                 }
-                match level {
-                    Level::Global(l) => o.iter_mut().for_each(|x| *x -= l),
-                    Level::Local(_) => o.iter_mut().zip(p).for_each(|(x, q)| *x -= level.at(*q)),
-                }
+                o.iter_mut().zip(p).for_each(|(x, q)| *x -= level.at(*q));
             };
             match &within {
                 None => query(p, &mut o),

@@ -871,8 +871,8 @@ where
         eprintln!(
             "mesh: {} faces over the observed region ({:.1} cm grid, mesh_full.ply), {} seen by \
              the mapped views at {:.1} cm (mesh.ply), the level estimated again in {} cubes, in \
-             {t:.1} s (level {t_level:.1} s, {} \
-             views rendered {:.1} s, local level and extraction {:.1} s, culling {:.1} s, finer grid {:.1} s)",
+             {t:.1} s (level {t_level:.1} s, {} views rendered {:.1} s, local level and \
+             extraction {:.1} s, culling {:.1} s, finer grid {:.1} s)",
             full.faces.len(),
             res * 100.0,
             mesh.faces.len(),
