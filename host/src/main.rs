@@ -216,10 +216,13 @@ struct SynthArgs {
     /// Frames (default: 60 for the room, 360 for the house).
     #[arg(long)]
     frames: Option<usize>,
-    #[arg(long, default_value_t = 160)]
-    width: u32,
-    #[arg(long, default_value_t = 120)]
-    height: u32,
+    /// Image width (default: 160 for the room, 320 for the house and the hall, the size
+    /// their measurements use).
+    #[arg(long)]
+    width: Option<u32>,
+    /// Image height (default: 120 for the room, 240 for the house and the hall).
+    #[arg(long)]
+    height: Option<u32>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
 }
@@ -683,8 +686,8 @@ fn synth(args: SynthArgs) -> anyhow::Result<()> {
         "room" => {
             let opts = himap::synth::SynthOptions {
                 frames: frames.unwrap_or(60),
-                width,
-                height,
+                width: width.unwrap_or(160),
+                height: height.unwrap_or(120),
                 seed,
             };
             let s = himap::synth::write_synthetic(&out, &opts)
@@ -708,8 +711,8 @@ fn synth(args: SynthArgs) -> anyhow::Result<()> {
             };
             let opts = himap::synth::house::HouseOptions {
                 frames: frames.unwrap_or(360),
-                width,
-                height,
+                width: width.unwrap_or(320),
+                height: height.unwrap_or(240),
                 seed,
                 kind,
             };
