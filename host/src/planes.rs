@@ -6,7 +6,9 @@
 //! depth is affine in the normalised image coordinates), accepted when most of the border
 //! agrees, the agreeing points span the region and their convex hull covers enough of it (a
 //! plane fitted beside an object in front of a wall, whose edge belongs to the object, is not
-//! extrapolated over the whole wall); every pixel of an accepted region then gets
+//! extrapolated over the whole wall), or, when the border is partly the outline of objects
+//! in front of the region, half of it lies on the plane and none of it behind; every pixel
+//! of an accepted region then gets
 //! the plane's depth as a per-pixel prior ([`Backend::set_depth_prior`], read by the mapping
 //! loss as `weight * smoothL1_0.05(D - target)`). Where the border is not one plane (a plain
 //! object meeting a wall of the same colour, ICL's white furniture) the fit fails and the
@@ -45,6 +47,15 @@ pub struct PlaneSection {
     /// plane fitted to one corner of a region (the wall beside an object in front of it, whose
     /// edge belongs to the object) would be extrapolated over the rest (0 = no check).
     pub cover: f32,
+    /// A region whose border fails `inliers` may still keep a plane that this share of its
+    /// border lies on when at most `behind` of the border lies behind it (the rest in
+    /// front: the outline of objects standing before a plain wall, whose edges carry the
+    /// objects' depth). That plane is searched again with each candidate scored by its
+    /// inliers less the border points behind it. 0 = off (as before 2026-12-06).
+    pub occluded_inliers: f32,
+    /// Largest share of the border points farther than the plane (beyond the tolerance) for
+    /// `occluded_inliers` to accept it.
+    pub behind: f32,
     /// Refinement iterations between two refreshes of the priors (0 = once, before it).
     pub refresh_every: u32,
     /// Border points rendered per region at most.
@@ -64,6 +75,8 @@ impl Default for PlaneSection {
             tol_rel: 0.02,
             spread: 5.0,
             cover: COVER,
+            occluded_inliers: 0.5,
+            behind: 0.0,
             refresh_every: 250,
             max_points: 400,
             trials: 100,
@@ -176,6 +189,9 @@ impl PlaneSection {
         }
         if !(0.0..=1.0).contains(&self.cover) {
             bail!("planes.cover must be in [0, 1] (a share of the region)");
+        }
+        if !(0.0..=1.0).contains(&self.occluded_inliers) || !(0.0..=1.0).contains(&self.behind) {
+            bail!("planes.occluded_inliers and planes.behind must be in [0, 1] (shares of the border)");
         }
         if self.max_points < 12 || self.trials == 0 {
             bail!("planes.max_points must be at least 12 and planes.trials at least 1");
@@ -394,40 +410,79 @@ pub fn region_plane(
         pl.depth(p[0], p[1])
             .is_some_and(|d| (d - p[2]).abs() < tol(p[2]))
     };
-    let mut best: Option<(usize, InversePlane)> = None;
-    for _ in 0..cfg.trials {
-        let i = rng.below(n as u32) as usize;
-        let j = rng.below(n as u32) as usize;
-        let k = rng.below(n as u32) as usize;
+    // The least-squares plane of a RANSAC plane's inliers, and its own inliers.
+    let refit = |pl: InversePlane| {
+        let pts: Vec<[f64; 3]> = points.iter().filter(|p| on(&pl, p)).copied().collect();
+        let pl = InversePlane::fit(&pts)?;
+        let inl: Vec<usize> = (0..n).filter(|&i| on(&pl, &points[i])).collect();
+        Some((pl, inl))
+    };
+    let (pl, inl) = refit(ransac(points, cfg.trials, rng, |pl| {
+        points.iter().filter(|p| on(pl, p)).count() as i64
+    })?)?;
+    if (inl.len() as f32) < cfg.inliers * n as f32 {
+        // A border that is partly the outline of objects in front of the region: keep the
+        // plane that most of the rest lies on when none of the border lies behind it.
+        let (occ, bmax) = (cfg.occluded_inliers, cfg.behind);
+        if occ <= 0.0 {
+            return None;
+        }
+        let behind = |pl: &InversePlane, p: &[f64; 3]| {
+            pl.depth(p[0], p[1]).is_none_or(|d| d < p[2] - tol(p[2]))
+        };
+        let (pl, inl) = refit(ransac(points, cfg.trials, rng, |pl| {
+            points.iter().filter(|p| on(pl, p)).count() as i64
+                - points.iter().filter(|p| behind(pl, p)).count() as i64
+        })?)?;
+        let nb = points.iter().filter(|p| behind(&pl, p)).count();
+        if (inl.len() as f32) < occ * n as f32 || nb as f32 > bmax * n as f32 {
+            return None;
+        }
+        return spread_ok(&inl, pixels, spread_px).then_some((pl, inl));
+    }
+    spread_ok(&inl, pixels, spread_px).then_some((pl, inl))
+}
+
+/// RANSAC over `trials` draws of three border points: the plane through them with the
+/// highest `score` (the first of equals), or `None` when no draw gives a plane.
+fn ransac(
+    points: &[[f64; 3]],
+    trials: u32,
+    rng: &mut SplitMix,
+    score: impl Fn(&InversePlane) -> i64,
+) -> Option<InversePlane> {
+    let n = points.len() as u32;
+    let mut best: Option<(i64, InversePlane)> = None;
+    for _ in 0..trials {
+        let i = rng.below(n) as usize;
+        let j = rng.below(n) as usize;
+        let k = rng.below(n) as usize;
         if i == j || j == k || i == k {
             continue;
         }
         let Some(pl) = InversePlane::through([points[i], points[j], points[k]]) else {
             continue;
         };
-        let c = points.iter().filter(|p| on(&pl, p)).count();
+        let c = score(&pl);
         if best.is_none_or(|(b, _)| c > b) {
             best = Some((c, pl));
         }
     }
-    let (_, pl) = best?;
-    let inl: Vec<usize> = (0..n).filter(|&i| on(&pl, &points[i])).collect();
-    let pts: Vec<[f64; 3]> = inl.iter().map(|&i| points[i]).collect();
-    let pl = InversePlane::fit(&pts)?;
-    let inl: Vec<usize> = (0..n).filter(|&i| on(&pl, &points[i])).collect();
-    if (inl.len() as f32) < cfg.inliers * n as f32 {
-        return None;
-    }
+    best.map(|(_, pl)| pl)
+}
+
+/// Whether the inliers' pixels spread at least `spread_px` along their thinner axis.
+fn spread_ok(inl: &[usize], pixels: &[[f32; 2]], spread_px: f32) -> bool {
     // spread of the inliers' pixels along the thinner axis
     let m = inl.len() as f64;
     let (mut su, mut sv) = (0.0f64, 0.0f64);
-    for &i in &inl {
+    for &i in inl {
         su += pixels[i][0] as f64;
         sv += pixels[i][1] as f64;
     }
     let (mu, mv) = (su / m, sv / m);
     let (mut cuu, mut cvv, mut cuv) = (0.0f64, 0.0f64, 0.0f64);
-    for &i in &inl {
+    for &i in inl {
         let (du, dv) = (pixels[i][0] as f64 - mu, pixels[i][1] as f64 - mv);
         cuu += du * du;
         cvv += dv * dv;
@@ -437,10 +492,7 @@ pub fn region_plane(
     let tr = cuu + cvv;
     let disc = ((cuu - cvv) * (cuu - cvv) / 4.0 + cuv * cuv).sqrt();
     let small = tr / 2.0 - disc;
-    if small.max(0.0).sqrt() < spread_px as f64 {
-        return None;
-    }
-    Some((pl, inl))
+    small.max(0.0).sqrt() >= spread_px as f64
 }
 
 /// Convex hull (counter-clockwise in image coordinates, no repeated first point) of `pts`
@@ -746,7 +798,9 @@ mod tests {
     #[test]
     fn settings_are_checked() {
         assert!(PlaneSection::default().validate().is_ok());
-        let bad: [fn(&mut PlaneSection); 6] = [
+        let bad: [fn(&mut PlaneSection); 8] = [
+            |p| p.occluded_inliers = -0.1,
+            |p| p.behind = f32::NAN,
             |p| p.step = 0.0,
             |p| p.cover = 1.5,
             |p| p.inliers = 1.5,
@@ -813,7 +867,10 @@ mod tests {
     /// different depths (an object meeting a wall) is rejected.
     #[test]
     fn region_plane_accepts_one_plane_only() {
-        let cfg = PlaneSection::default();
+        let cfg = PlaneSection {
+            occluded_inliers: 0.0,
+            ..PlaneSection::default()
+        };
         let truth = InversePlane([0.0, 0.1, 0.5]);
         let mut pts = Vec::new();
         let mut pix = Vec::new();
@@ -831,6 +888,48 @@ mod tests {
         for q in pts.iter_mut().filter(|q| q[0] > 0.0) {
             q[2] -= 0.6;
         }
+        assert!(region_plane(&pts, &pix, &cfg, 5.0, &mut rng).is_none());
+    }
+
+    /// A plain wall's border: 40 points of an ellipse on the plane `1 / z = 0.1 y + 0.5`
+    /// (2 m at the centre), of which the arc `moved` (indices) is shifted by `dz` m.
+    fn wall_border(moved: std::ops::Range<usize>, dz: f64) -> (Vec<[f64; 3]>, Vec<[f32; 2]>) {
+        let truth = InversePlane([0.0, 0.1, 0.5]);
+        let mut pts = Vec::new();
+        let mut pix = Vec::new();
+        for i in 0..40 {
+            let t = i as f64 / 40.0 * std::f64::consts::TAU;
+            let (u, v) = (160.0 + 60.0 * t.cos(), 120.0 + 50.0 * t.sin());
+            let (x, y) = ((u - 160.0) / 200.0, (v - 120.0) / 200.0);
+            let z = truth.depth(x, y).unwrap() + if moved.contains(&i) { dz } else { 0.0 };
+            pts.push([x, y, z]);
+            pix.push([u as f32, v as f32]);
+        }
+        (pts, pix)
+    }
+
+    /// With `occluded_inliers`, a border that is 45 % the outline of an object 60 cm in front
+    /// of the region still gives the region's own plane (the 55 % that agree, none behind
+    /// it); the same arc 60 cm behind (the region's own pixels beyond the plane: not an
+    /// occluder) gives none, and so does an occluder that leaves less than half the border
+    /// on the plane, or the rule switched off.
+    #[test]
+    fn region_plane_keeps_the_plane_behind_occluders() {
+        let cfg = PlaneSection::default();
+        assert_eq!(cfg.occluded_inliers, 0.5);
+        let mut rng = SplitMix::new(7);
+        let (pts, pix) = wall_border(0..18, -0.6);
+        let (p, inl) = region_plane(&pts, &pix, &cfg, 5.0, &mut rng).expect("the wall's plane");
+        assert!((p.depth(0.0, 0.0).unwrap() - 2.0).abs() < 1e-6);
+        assert_eq!(inl, (18..40).collect::<Vec<_>>());
+        let off = PlaneSection {
+            occluded_inliers: 0.0,
+            ..cfg.clone()
+        };
+        assert!(region_plane(&pts, &pix, &off, 5.0, &mut rng).is_none());
+        let (pts, pix) = wall_border(0..18, 0.6);
+        assert!(region_plane(&pts, &pix, &cfg, 5.0, &mut rng).is_none());
+        let (pts, pix) = wall_border(0..22, -0.6);
         assert!(region_plane(&pts, &pix, &cfg, 5.0, &mut rng).is_none());
     }
 }
