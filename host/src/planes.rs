@@ -871,16 +871,7 @@ mod tests {
             occluded_inliers: 0.0,
             ..PlaneSection::default()
         };
-        let truth = InversePlane([0.0, 0.1, 0.5]);
-        let mut pts = Vec::new();
-        let mut pix = Vec::new();
-        for i in 0..40 {
-            let t = i as f64 / 40.0 * std::f64::consts::TAU;
-            let (u, v) = (160.0 + 60.0 * t.cos(), 120.0 + 50.0 * t.sin());
-            let (x, y) = ((u - 160.0) / 200.0, (v - 120.0) / 200.0);
-            pts.push([x, y, truth.depth(x, y).unwrap()]);
-            pix.push([u as f32, v as f32]);
-        }
+        let (mut pts, pix) = wall_border(0..0, 0.0);
         let mut rng = SplitMix::new(1);
         let (p, _) = region_plane(&pts, &pix, &cfg, 5.0, &mut rng).expect("one plane");
         assert!((p.depth(0.0, 0.0).unwrap() - 2.0).abs() < 1e-6);
