@@ -119,6 +119,10 @@ pub struct RunState {
     pub rows: Vec<UpdateMetrics>,
     pub outside_box: usize,
     pub mapping_s: f64,
+    /// Ids of the frames that carry an online plane prior ([`crate::planes::OnlinePriors`];
+    /// none in a checkpoint written before them).
+    #[serde(default)]
+    pub plane_priors: Vec<u32>,
 }
 
 impl RunState {
@@ -132,6 +136,7 @@ impl RunState {
         rows: &[UpdateMetrics],
         outside_box: usize,
         mapping_s: f64,
+        plane_priors: &[u32],
     ) -> Self {
         Self {
             config: config.to_toml(),
@@ -151,6 +156,7 @@ impl RunState {
             rows: rows.to_vec(),
             outside_box,
             mapping_s,
+            plane_priors: plane_priors.to_vec(),
         }
     }
 

@@ -86,22 +86,78 @@ impl Default for PlaneSection {
 
 const COVER: f32 = 0.15;
 
-/// After an online update (a caller driving [`Mapper::push_frame`] calls it whenever a push
-/// returns a report, as `himap map` does): with the online weight `mapper.lambda_plane` on,
-/// the local frames' priors from the map they were just mapped into, for the next updates
-/// (measured worse than none on the house: ARCHITECTURE.md; off in every preset).
-pub fn after_update<B: Backend>(
-    mapper: &mut Mapper<'_, B>,
-    config: &Config,
-) -> Result<Option<PlaneStats>>
-where
-    B::Error: std::error::Error + Send + Sync + 'static,
-{
-    if mapper.config().lambda_plane == 0.0 {
-        return Ok(None);
+/// The online plane priors (`mapper.lambda_plane`): after every online update the local
+/// frames' priors are fitted to the map they were just mapped into, and the frames that left
+/// the local window since lose theirs, so that only the window's newest frames carry a prior
+/// (a keyframe's prior, fitted to a map long gone, would keep pulling its plain regions
+/// towards an old guess). A caller driving [`Mapper::push_frame`] calls
+/// [`Self::after_update`] whenever a push returns a report, as `himap map` does; a resumed
+/// run rebuilds the same priors with [`Self::resume`]. Off in every preset: on the house it
+/// helps the plain walls the newest frames see and hurts the frames that first look through
+/// a doorway (a plain far wall seen through a door gets the plane of the door's frame, a
+/// membrane the next frames must carve), so the worst stretch of some walks gets worse
+/// (ARCHITECTURE.md, forty-first session).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct OnlinePriors {
+    /// Ids of the frames whose image slots carry a prior (the local frames of the last update).
+    carrying: Vec<u32>,
+}
+
+impl OnlinePriors {
+    /// Ids of the frames that carry a prior now (what a checkpoint stores).
+    pub fn carrying(&self) -> &[u32] {
+        &self.carrying
     }
-    let ids: Vec<u32> = mapper.local_ids().collect();
-    refresh(mapper, &ids, &config.planes, config.model.max_depth).map(Some)
+
+    /// After an online update: clears the priors of the frames that left the local window and
+    /// fits the local frames' priors to the map (nothing when `mapper.lambda_plane` is 0).
+    pub fn after_update<B: Backend>(
+        &mut self,
+        mapper: &mut Mapper<'_, B>,
+        config: &Config,
+    ) -> Result<Option<PlaneStats>>
+    where
+        B::Error: std::error::Error + Send + Sync + 'static,
+    {
+        if mapper.config().lambda_plane == 0.0 {
+            return Ok(None);
+        }
+        let ids: Vec<u32> = mapper.local_ids().collect();
+        let k = mapper.intrinsics();
+        let none = vec![0.0f32; (k.width * k.height) as usize];
+        let left: Vec<u32> = mapper
+            .state()
+            .held()
+            .filter(|h| self.carrying.contains(&h.id) && !ids.contains(&h.id))
+            .map(|h| h.slot)
+            .collect();
+        for slot in left {
+            mapper.backend_mut().set_depth_prior(slot, &none)?;
+        }
+        let st = refresh(mapper, &ids, &config.planes, config.model.max_depth)?;
+        self.carrying = ids;
+        Ok(Some(st))
+    }
+
+    /// A resumed run's priors: those of the frames `carrying` (a checkpoint's
+    /// [`Self::carrying`]), fitted again to the restored map, which is the map they were
+    /// fitted to (a checkpoint is written between updates), so the run goes on with the same
+    /// bits as one never interrupted.
+    pub fn resume<B: Backend>(
+        mapper: &mut Mapper<'_, B>,
+        config: &Config,
+        carrying: &[u32],
+    ) -> Result<Self>
+    where
+        B::Error: std::error::Error + Send + Sync + 'static,
+    {
+        if mapper.config().lambda_plane != 0.0 && !carrying.is_empty() {
+            refresh(mapper, carrying, &config.planes, config.model.max_depth)?;
+        }
+        Ok(Self {
+            carrying: carrying.to_vec(),
+        })
+    }
 }
 
 /// Why [`refine`] failed: the mapper (its backend) or the priors.

@@ -484,6 +484,8 @@ fn a_resumed_run_equals_the_uninterrupted_one() {
     let mut cfg = tiny_config();
     cfg.eval.final_every = 0;
     cfg.mapper.max_keyframes = 3; // the cache thins before the checkpoint
+                                  // online plane priors: the resumed run must fit the same ones again (`OnlinePriors::resume`)
+    cfg.mapper.lambda_plane = 1.0;
     let whole = run_map(&options(
         data.clone(),
         dir.path().join("whole"),

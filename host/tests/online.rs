@@ -146,6 +146,7 @@ fn map_command_equals_the_streaming_api() {
     let mut px = vec![PixelSample::default(); cfg.mapper.pixels as usize];
     let mut res = vec![PixelResult::default(); cfg.mapper.pixels as usize];
     let mc = cfg.mapper_config().unwrap();
+    let mut priors = himap::planes::OnlinePriors::default();
     for i in 0..ds.len() {
         let frame = ds.frame(i).unwrap();
         if started.is_none() {
@@ -175,7 +176,7 @@ fn map_command_equals_the_streaming_api() {
             .unwrap()
             .is_some()
         {
-            himap::planes::after_update(m, &cfg).unwrap();
+            priors.after_update(m, &cfg).unwrap();
         }
     }
     assert!(grew > 0, "the walk should grow the 6 m box");

@@ -55,7 +55,20 @@ where
     let mut rec = UpdateRecorder::new(opts, k, &mcfg, n, resumed.as_ref().map(|(r, _)| r))?;
     let progress = Progress::new(opts, n);
     let start = resumed.as_ref().map_or(0, |(r, _)| r.pushed as usize);
-    let poses = push_frames(opts, ds, &mut run, start, &mut mapper, &mut rec, &progress)?;
+    let mut priors = match &resumed {
+        Some((r, _)) => crate::planes::OnlinePriors::resume(&mut mapper, cfg, &r.plane_priors)?,
+        None => crate::planes::OnlinePriors::default(),
+    };
+    let poses = push_frames(
+        opts,
+        ds,
+        &mut run,
+        start,
+        &mut mapper,
+        &mut rec,
+        &mut priors,
+        &progress,
+    )?;
     progress.pb.finish_and_clear();
     if opts.profile {
         match mapper
@@ -115,6 +128,7 @@ struct StepCounts {
 /// Pushes frames `start..` (up to `--stop-after`) into the mapper one at a time, records
 /// every update, writes checkpoints, and runs the final update after the last frame. Returns
 /// the poses of every pushed frame (the mesh level is measured over them).
+#[allow(clippy::too_many_arguments)]
 fn push_frames<B: MapBackend>(
     opts: &MapOptions,
     ds: &dyn crate::dataset::Dataset,
@@ -122,6 +136,7 @@ fn push_frames<B: MapBackend>(
     start: usize,
     mapper: &mut Mapper<'_, B>,
     rec: &mut UpdateRecorder<'_>,
+    priors: &mut crate::planes::OnlinePriors,
     progress: &Progress,
 ) -> anyhow::Result<Vec<Pose>>
 where
@@ -178,12 +193,12 @@ where
             let dt = t0.elapsed().as_secs_f64();
             let seen = Seen::of(mapper, &poses);
             rec.record(mapper.backend_mut(), r, &frame, dt, progress, &seen)?;
-            crate::planes::after_update(mapper, cfg)?;
+            priors.after_update(mapper, cfg)?;
         }
         progress.pb.inc(1);
         last_frame = Some(frame);
         if opts.checkpoint_every > 0 && (i + 1).is_multiple_of(opts.checkpoint_every) {
-            write_checkpoint(opts, mapper, rec, &poses, n)?;
+            write_checkpoint(opts, mapper, rec, priors, &poses, n)?;
             last_checkpoint = Some(i + 1);
         }
     }
@@ -267,6 +282,7 @@ fn write_checkpoint<B: MapBackend>(
     opts: &MapOptions,
     mapper: &mut Mapper<'_, B>,
     rec: &UpdateRecorder<'_>,
+    priors: &crate::planes::OnlinePriors,
     poses: &[Pose],
     n: usize,
 ) -> anyhow::Result<()>
@@ -286,6 +302,7 @@ where
         &rec.rows,
         rec.outside_box,
         rec.mapping_s,
+        priors.carrying(),
     );
     let data = mapper.backend_mut().export()?;
     checkpoint::save(&opts.out, cfg, &data, &run)
