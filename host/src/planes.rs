@@ -123,16 +123,18 @@ impl OnlinePriors {
             return Ok(None);
         }
         let ids: Vec<u32> = mapper.local_ids().collect();
-        let k = mapper.intrinsics();
-        let none = vec![0.0f32; (k.width * k.height) as usize];
         let left: Vec<u32> = mapper
             .state()
             .held()
             .filter(|h| self.carrying.contains(&h.id) && !ids.contains(&h.id))
             .map(|h| h.slot)
             .collect();
-        for slot in left {
-            mapper.backend_mut().set_depth_prior(slot, &none)?;
+        if !left.is_empty() {
+            let k = mapper.intrinsics();
+            let none = vec![0.0f32; (k.width * k.height) as usize];
+            for slot in left {
+                mapper.backend_mut().set_depth_prior(slot, &none)?;
+            }
         }
         let st = refresh(mapper, &ids, &config.planes, config.model.max_depth)?;
         self.carrying = ids;
@@ -487,8 +489,10 @@ pub fn region_plane(
             pl.depth(p[0], p[1]).is_none_or(|d| d < p[2] - tol(p[2]))
         };
         let (pl, inl) = refit(ransac(points, cfg.trials, rng, |pl| {
-            points.iter().filter(|p| on(pl, p)).count() as i64
-                - points.iter().filter(|p| behind(pl, p)).count() as i64
+            points
+                .iter()
+                .map(|p| on(pl, p) as i64 - behind(pl, p) as i64)
+                .sum()
         })?)?;
         let nb = points.iter().filter(|p| behind(&pl, p)).count();
         if (inl.len() as f32) < occ * n as f32 || nb as f32 > bmax * n as f32 {
