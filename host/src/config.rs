@@ -481,6 +481,11 @@ impl Config {
     ///   e.g. house seed 0 78.9 -> 62.1 cm, hall 87.4 -> 73.8 cm);
     /// - online colour weight 0.1 (0.001 sat at Adam's eps) and 75 % of the pixels on the
     ///   frames new since the last update;
+    /// - a warping term from 3 valid views (`mapper.warp.min_views`; DIM-SLAM's 4 in
+    ///   `paper`): space the newest frames look into for the first time gets the term while
+    ///   they still see it (house walk 7, frames 0..115, three mapping seeds each: mean Depth
+    ///   L1 of the newest frame 26.4-29.2 cm and worst 5-update window 46-55 cm, against
+    ///   31.9-37.0 and 58-80 cm with 4 over four seeds; ICL 6.7 -> 6.2 cm);
     /// - a final refinement of 2000 iterations (1000 before the plane priors) whose colour
     ///   loss, weighted 10, reaches the
     ///   geometry (`mapper.refine_color_to_geometry`, `refine_lambda_color`): every view is
@@ -516,6 +521,7 @@ impl Config {
         c.mapper.pixels = 512;
         c.mapper.new_frame_share = 0.75;
         c.mapper.max_keyframes = 128;
+        c.mapper.warp.min_views = 3;
         c.mapper.iters = 60;
         c.mapper.refine_iters = 2000;
         c.mapper.refine_color_to_geometry = true;
@@ -544,7 +550,8 @@ impl Config {
     }
 
     /// `himap demo`'s preset: `small` with the schedule before early termination (20 online
-    /// iterations, `model.min_transmittance` 0) and without the final refinement (on the demo
+    /// iterations, `model.min_transmittance` 0), DIM-SLAM's 4 warping views and without the
+    /// final refinement (on the demo
     /// room it lifts the final map 23.7 -> 25.0 dB but moves the mesh to 5.01 / 6.62 cm,
     /// 63.1 %, and doubles the time), the one the demo room's mesh bars were set
     /// with. The demo is 60 frames of one small room, where time is not the issue, and its
@@ -558,6 +565,9 @@ impl Config {
         c.mapper.iters = 20;
         c.mapper.refine_iters = 0;
         c.model.min_transmittance = 0.0;
+        // DIM-SLAM's 4 views: the room's bars were set with it (3 gives 3.87 / 5.72 cm, 73.9 %
+        // and a final map 1.6 dB lower on the demo room: ARCHITECTURE.md, forty-third session).
+        c.mapper.warp.min_views = 4;
         c
     }
 

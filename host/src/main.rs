@@ -62,7 +62,7 @@ struct MapArgs {
     /// (e.g. a dataset's scene box and camera, then an experiment's settings).
     #[arg(long)]
     config: Vec<PathBuf>,
-    /// Preset: small (2-core CPU), paper, or demo (`himap demo`'s: small with the 20-iteration schedule without early termination).
+    /// Preset: small (2-core CPU), paper, or demo (`himap demo`'s: small with the 20-iteration schedule without early termination and with 4 warping views).
     #[arg(long, default_value = "small")]
     preset: String,
     /// Backend: cpu (multi-threaded), vulkan, or auto (a Vulkan GPU when one is usable,
