@@ -39,14 +39,11 @@ if [ ! -x "$HIMAP" ]; then
 fi
 mkdir -p "$OUT"
 
-# stats DIR: mean Depth L1, worst 5-update window, share of updates over 30 cm (metrics.csv
-# column 5 holds the newest frame's Depth L1 in cm).
+# stats DIR: mean Depth L1, worst 5-update window (the mean with fewer than 5 updates), share
+# of updates over 30 cm.
 stats() {
-    awk -F, 'NR > 1 && $5 != "" { d[n++] = $5; s += $5; if ($5 > 30) o++ }
-        END { if (n == 0) { print "- - -"; exit }
-              w = -1; for (i = 0; i + 5 <= n; i++) { t = 0; for (j = i; j < i + 5; j++) t += d[j];
-              if (t / 5 > w) w = t / 5 }
-              printf "%.1f %.1f %.0f\n", s / n, (w < 0 ? s / n : w), 100 * o / n }' "$1/metrics.csv"
+    awk -F, -f "$root/scripts/newest_depth.awk" "$1/metrics.csv" |
+        awk '{ if ($2 == "-") $2 = $1; print }'
 }
 
 printf '%-6s %-6s %9s %14s %8s\n' walk seed "DL1 cm" "worst5" "% >30cm"

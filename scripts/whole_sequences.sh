@@ -81,9 +81,7 @@ fi
 
 # worst5 DIR: worst mean Depth L1 over 5 consecutive updates (metrics.csv column 5).
 worst5() {
-    awk -F, 'NR > 1 && $5 != "" { d[n++] = $5 }
-        END { w = -1; for (i = 0; i + 5 <= n; i++) { s = 0; for (j = i; j < i + 5; j++) s += d[j];
-              if (s / 5 > w) w = s / 5 } if (w < 0) print "-"; else printf "%.1f", w }' "$1/metrics.csv"
+    awk -F, -f "$root/scripts/newest_depth.awk" "$1/metrics.csv" | cut -d' ' -f2
 }
 
 row() {
