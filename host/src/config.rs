@@ -341,7 +341,9 @@ pub struct Config {
     pub eval: EvalSection,
     /// How to read the dataset: the colour camera and the depth images' own camera when the
     /// files' are not right (`[dataset.camera]`, `[dataset.depth_camera]`: width, height, fx,
-    /// fy, cx, cy), depth scale, layout. Empty = what the dataset's files say.
+    /// fy, cx, cy), the colour camera's centre in the pose and depth camera's frame
+    /// (`colour_offset = [x, y, z]`, metres), depth scale, layout. Empty = what the dataset's
+    /// files say.
     pub dataset: crate::dataset::DatasetConfig,
     /// Plane priors of plain regions (`crate::planes`; off unless a weight is set).
     pub planes: crate::planes::PlaneSection,

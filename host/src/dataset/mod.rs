@@ -175,6 +175,42 @@ impl DepthImage {
         out
     }
 
+    /// This depth image (taken by camera `from`) seen from camera `to`, whose centre sits at
+    /// `offset` (metres) in `from`'s frame and which shares its orientation: every measured
+    /// pixel is back-projected, moved into `to`'s frame and splatted to its nearest pixel
+    /// there, the nearest surface winning (z-depth in `to`'s frame). Pixels nothing lands on
+    /// (outside `from`'s view, or behind a near edge from `to`'s point of view) stay 0. With
+    /// a zero offset this is [`Self::registered`] (the same bits).
+    pub fn registered_from(&self, from: &Intrinsics, to: &Intrinsics, offset: [f32; 3]) -> Self {
+        if offset == [0.0; 3] {
+            return self.registered(from, to);
+        }
+        let mut out = DepthImage::new(to.width, to.height);
+        for y in 0..self.height {
+            for x in 0..self.width {
+                let z = self.get(x, y);
+                // a NaN or a missing (0) measurement stays out
+                if z.is_nan() || z <= 0.0 {
+                    continue;
+                }
+                let d = from.direction(x as f32, y as f32);
+                let q = [z * d[0] - offset[0], z * d[1] - offset[1], z - offset[2]];
+                if q[2] <= 0.0 {
+                    continue;
+                }
+                let u = (to.fx * q[0] / q[2] + to.cx).round();
+                let v = (to.fy * q[1] / q[2] + to.cy).round();
+                if u >= 0.0 && v >= 0.0 && (u as u32) < to.width && (v as u32) < to.height {
+                    let o = &mut out.data[(v as u32 * to.width + u as u32) as usize];
+                    if *o == 0.0 || q[2] < *o {
+                        *o = q[2];
+                    }
+                }
+            }
+        }
+        out
+    }
+
     /// An image with no valid measurement.
     pub fn new(width: u32, height: u32) -> Self {
         Self {
@@ -431,6 +467,13 @@ pub struct DatasetConfig {
     /// the two cameras are taken to share centre and orientation). Depth is only ground truth
     /// for evaluation, so this changes no map.
     pub depth_camera: Option<CameraConfig>,
+    /// The colour camera's centre in the frame of the camera the poses and depth images
+    /// belong to (metres; x right, y down, z forward), when that is another camera with the
+    /// same orientation (7-Scenes: KinectFusion tracked the depth camera, and the Kinect's
+    /// colour camera sits about 2.5 cm to its right). Mapping gets each pose moved by it (the
+    /// colour camera's pose), and each depth image is re-projected into the colour camera
+    /// (nearest surface per pixel). `None`: one centre, the poses are the colour camera's.
+    pub colour_offset: Option<[f32; 3]>,
     /// Depth scale (stored value per metre) to use instead of the detected one.
     pub depth_scale: Option<f32>,
     /// TUM: largest timestamp difference (s) accepted when associating colour, depth and pose.
@@ -450,6 +493,7 @@ impl Default for DatasetConfig {
             format: None,
             camera: None,
             depth_camera: None,
+            colour_offset: None,
             depth_scale: None,
             tum_max_dt: 0.02,
             undistort: true,
@@ -650,6 +694,9 @@ pub(crate) struct Selection {
     /// The depth images' own camera when they are not registered to the colour images
     /// ([`DatasetConfig::depth_camera`]).
     pub depth_camera: Option<Intrinsics>,
+    /// The colour camera's centre in the pose and depth camera's frame
+    /// ([`DatasetConfig::colour_offset`]; zero = the same camera).
+    pub colour_offset: [f32; 3],
 }
 
 impl Selection {
@@ -712,6 +759,7 @@ impl Selection {
             crop: opts.crop_edge,
             out,
             depth_camera: None,
+            colour_offset: [0.0; 3],
         })
     }
 
@@ -727,6 +775,41 @@ impl Selection {
             self.depth_camera = Some(k);
         }
         Ok(self)
+    }
+
+    /// Sets the colour camera's centre in the pose camera's frame (`None` = the same centre).
+    pub fn with_colour_offset(
+        mut self,
+        root: &Path,
+        offset: Option<[f32; 3]>,
+    ) -> Result<Self, DatasetError> {
+        if let Some(o) = offset {
+            if o.iter().any(|c| !c.is_finite() || c.abs() > 10.0) {
+                return Err(DatasetError::InvalidOption {
+                    path: root.to_path_buf(),
+                    msg: format!(
+                        "dataset.colour_offset {o:?}: need finite metres within 10 m of the \
+                         pose camera"
+                    ),
+                });
+            }
+            self.colour_offset = o;
+        }
+        Ok(self)
+    }
+
+    /// The colour camera's pose for a pose of the pose (and depth) camera: moved by
+    /// [`DatasetConfig::colour_offset`] along the camera's own axes.
+    pub fn colour_pose(&self, p: Pose) -> Pose {
+        let o = self.colour_offset;
+        if o == [0.0; 3] {
+            return p;
+        }
+        let mut m = p.m;
+        for row in &mut m {
+            row[3] += row[0] * o[0] + row[1] * o[1] + row[2] * o[2];
+        }
+        Pose { m }
     }
 
     /// The camera of the depth images on disk.
@@ -750,7 +833,10 @@ impl Selection {
     /// Resize and crop a depth image decoded at the native size.
     pub fn finish_depth(&self, img: DepthImage) -> DepthImage {
         let img = match &self.depth_camera {
-            Some(dk) => img.registered(dk, &self.native),
+            Some(dk) => img.registered_from(dk, &self.native, self.colour_offset),
+            None if self.colour_offset != [0.0; 3] => {
+                img.registered_from(&self.native, &self.native, self.colour_offset)
+            }
             None => img,
         };
         let img = match self.resize {

@@ -304,7 +304,8 @@ impl ReplicaDataset {
             });
         }
         let sel = Selection::new(root, n, native, opts)?
-            .with_depth_camera(root, cfg.depth_camera.as_ref())?;
+            .with_depth_camera(root, cfg.depth_camera.as_ref())?
+            .with_colour_offset(root, cfg.colour_offset)?;
 
         let load_depth = opts.load_depth && !depth_map.is_empty();
         let (depths, depth_scale) = if load_depth {
@@ -373,7 +374,7 @@ impl Dataset for ReplicaDataset {
     }
 
     fn pose(&self, i: usize) -> Pose {
-        self.poses[self.sel.indices[i]]
+        self.sel.colour_pose(self.poses[self.sel.indices[i]])
     }
 
     fn frame(&self, i: usize) -> Result<Frame, DatasetError> {
@@ -392,7 +393,7 @@ impl Dataset for ReplicaDataset {
             index: src,
             rgb: self.sel.finish_rgb(rgb),
             depth,
-            pose: self.poses[src],
+            pose: self.sel.colour_pose(self.poses[src]),
             intrinsics: self.sel.out,
         })
     }

@@ -1273,6 +1273,94 @@ fn depth_camera_from_the_configuration_registers_every_frame() {
 }
 
 #[test]
+fn depth_reprojected_into_an_offset_colour_camera() {
+    let k = Intrinsics {
+        width: 40,
+        height: 30,
+        fx: 100.0,
+        fy: 100.0,
+        cx: 19.5,
+        cy: 14.5,
+    };
+    // A wall at z = 2 m with a box at z = 1 m on columns 10..=14.
+    let mut d = DepthImage::new(40, 30);
+    for y in 0..30 {
+        for x in 0..40 {
+            d.data[y * 40 + x] = if (10..=14).contains(&x) { 1.0 } else { 2.0 };
+        }
+    }
+    // No offset: the same bits as the plain registration.
+    assert_eq!(d.registered_from(&k, &k, [0.0; 3]), d.registered(&k, &k));
+    // The colour camera 10 cm to the right: the wall moves fx * 0.1 / 2 = 5 px left, the box
+    // 10 px; the box hides the wall behind it, and the wall's pixels the box hid from the
+    // depth camera are holes.
+    let r = d.registered_from(&k, &k, [0.1, 0.0, 0.0]);
+    let row: Vec<f32> = (0..40).map(|x| r.get(x, 7)).collect();
+    assert_eq!(row[34], 2.0, "the wall at column 39 of the depth image");
+    assert_eq!(
+        row[35], 0.0,
+        "nothing lands right of the depth image's last column"
+    );
+    assert_eq!(
+        &row[0..5],
+        &[1.0; 5],
+        "the box, 10 px left, in front of the wall"
+    );
+    assert_eq!(
+        &row[5..10],
+        &[0.0; 5],
+        "the wall the box hid from the depth camera"
+    );
+    assert_eq!(
+        row[10], 2.0,
+        "the wall again from column 15 of the depth image"
+    );
+    // The pose moves along the camera's own axes: a camera turned 90 degrees about y
+    // (its x axis along world -z) moves its centre by -0.1 along world z.
+    let p = Pose {
+        m: [
+            [0.0, 0.0, 1.0, 1.0],
+            [0.0, 1.0, 0.0, 2.0],
+            [-1.0, 0.0, 0.0, 3.0],
+        ],
+    };
+    let dir = synthetic_40x30(2);
+    let cfg = DatasetConfig {
+        colour_offset: Some([0.1, 0.0, 0.0]),
+        ..DatasetConfig::default()
+    };
+    let plain = open(dir.path(), &LoadOptions::default()).unwrap();
+    let ds = open_with(dir.path(), &LoadOptions::default(), &cfg).unwrap();
+    let sel = Selection::new(dir.path(), 2, plain.intrinsics(), &LoadOptions::default())
+        .unwrap()
+        .with_colour_offset(dir.path(), Some([0.1, 0.0, 0.0]))
+        .unwrap();
+    let moved = sel.colour_pose(p);
+    assert_eq!(moved.m[0][3], 1.0);
+    assert_eq!(moved.m[1][3], 2.0);
+    assert!((moved.m[2][3] - 2.9).abs() < 1e-6);
+    // The loader hands out moved poses and re-projected depth, the same colour pixels.
+    let (a, b) = (plain.frame(1).unwrap(), ds.frame(1).unwrap());
+    assert_eq!(a.rgb.data, b.rgb.data);
+    assert_eq!(b.pose, sel.colour_pose(a.pose));
+    assert_eq!(ds.pose(1), b.pose);
+    let k = plain.intrinsics();
+    assert_eq!(
+        b.depth.unwrap(),
+        a.depth.unwrap().registered_from(&k, &k, [0.1, 0.0, 0.0])
+    );
+    // A nonsensical offset is an error naming the setting.
+    let bad = DatasetConfig {
+        colour_offset: Some([f32::NAN, 0.0, 0.0]),
+        ..DatasetConfig::default()
+    };
+    let e = open_with(dir.path(), &LoadOptions::default(), &bad)
+        .err()
+        .expect("a NaN offset is refused");
+    assert!(e.to_string().contains("colour_offset"), "{e}");
+}
+
+#[test]
 fn oversized_text_files_are_refused_before_reading() {
     let dir = replica_fixture(2);
     // A sparse file: its length is over the limit, its blocks are not written.

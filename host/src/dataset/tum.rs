@@ -381,7 +381,8 @@ impl TumDataset {
             });
         }
         let sel = Selection::new(root, entries.len(), native, opts)?
-            .with_depth_camera(root, cfg.depth_camera.as_ref())?;
+            .with_depth_camera(root, cfg.depth_camera.as_ref())?
+            .with_colour_offset(root, cfg.colour_offset)?;
         for &i in &sel.indices {
             let e = &entries[i];
             for p in std::iter::once(&e.rgb).chain(e.depth.as_ref()) {
@@ -444,7 +445,7 @@ impl Dataset for TumDataset {
     }
 
     fn pose(&self, i: usize) -> Pose {
-        self.entries[self.sel.indices[i]].pose
+        self.sel.colour_pose(self.entries[self.sel.indices[i]].pose)
     }
 
     fn frame(&self, i: usize) -> Result<Frame, DatasetError> {
@@ -466,7 +467,7 @@ impl Dataset for TumDataset {
             index: src,
             rgb: self.sel.finish_rgb(rgb),
             depth,
-            pose: e.pose,
+            pose: self.sel.colour_pose(e.pose),
             intrinsics: self.sel.out,
         })
     }
