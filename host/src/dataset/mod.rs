@@ -464,15 +464,18 @@ pub struct DatasetConfig {
     /// The depth images' own camera, when depth is not registered to colour (7-Scenes: the
     /// files give the depth camera, 585 px focal, and the colour camera is about 525). Each
     /// depth image is resampled into the colour camera's pixels (nearest neighbour, z kept;
-    /// the two cameras are taken to share centre and orientation). Depth is only ground truth
-    /// for evaluation, so this changes no map.
+    /// the two cameras are taken to share centre and orientation unless `colour_offset`
+    /// says otherwise). Depth is only ground truth for evaluation, so this changes no map.
     pub depth_camera: Option<CameraConfig>,
     /// The colour camera's centre in the frame of the camera the poses and depth images
     /// belong to (metres; x right, y down, z forward), when that is another camera with the
     /// same orientation (7-Scenes: KinectFusion tracked the depth camera, and the Kinect's
-    /// colour camera sits about 2.5 cm to its right). Mapping gets each pose moved by it (the
-    /// colour camera's pose), and each depth image is re-projected into the colour camera
-    /// (nearest surface per pixel). `None`: one centre, the poses are the colour camera's.
+    /// colour camera sits about 2 cm to its right; `scripts/colour_offset_fit.py` measures
+    /// it). Mapping gets each pose moved by it (the colour camera's pose), and each depth
+    /// image is re-projected into the colour camera (nearest surface per pixel; a colour
+    /// camera with finer pixels than the depth camera's gets holes between the splats, which
+    /// evaluation skips like any missing depth). `None`: one centre, the poses are the colour
+    /// camera's.
     pub colour_offset: Option<[f32; 3]>,
     /// Depth scale (stored value per metre) to use instead of the detected one.
     pub depth_scale: Option<f32>,
