@@ -25,7 +25,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 
-def load(root, frames, kd, kc, size):
+def load(root, frames, kd, scale):
     out = []
     for i in frames:
         c = cv2.imread(f"{root}/results/frame{i:06d}.jpg", 0)
@@ -36,7 +36,7 @@ def load(root, frames, kd, kc, size):
             break
         c = c.astype(np.float32)
         grad = np.hypot(cv2.Sobel(c, cv2.CV_32F, 1, 0), cv2.Sobel(c, cv2.CV_32F, 0, 1))
-        d = d.astype(np.float32) / args.scale
+        d = d.astype(np.float32) / scale
         v, u = np.nonzero(d > 0)
         z = d[v, u]
         pts = np.stack([(u - kd[2]) / kd[0] * z, (v - kd[3]) / kd[1] * z, z], 1)
@@ -86,8 +86,8 @@ ap.add_argument("--step", type=int, default=5, help="every step-th frame (fit), 
 ap.add_argument("--frames", type=int, default=250)
 args = ap.parse_args()
 size = tuple(args.size)
-fit = load(args.root, range(0, args.frames, args.step), args.depth, args.colour, size)
-check = load(args.root, range(2, args.frames, args.step), args.depth, args.colour, size)
+fit = load(args.root, range(0, args.frames, args.step), args.depth, args.scale)
+check = load(args.root, range(2, args.frames, args.step), args.depth, args.scale)
 f = lambda p: -score(fit, list(p) + [0, 0], args.colour, size)
 print("no offset: %.2f" % -f([0, 0, 0]))
 grid = [(-f([bx, 0, bz]), bx, bz) for bx in (-0.03, -0.015, 0.0, 0.015, 0.03)

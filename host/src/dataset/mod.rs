@@ -198,8 +198,8 @@ impl DepthImage {
                 if q[2] <= 0.0 {
                     continue;
                 }
-                let u = (to.fx * q[0] / q[2] + to.cx).round();
-                let v = (to.fy * q[1] / q[2] + to.cy).round();
+                let (u, v, _) = to.project(q);
+                let (u, v) = (u.round(), v.round());
                 if u >= 0.0 && v >= 0.0 && (u as u32) < to.width && (v as u32) < to.height {
                     let o = &mut out.data[(v as u32 * to.width + u as u32) as usize];
                     if *o == 0.0 || q[2] < *o {
@@ -804,13 +804,13 @@ impl Selection {
     /// The colour camera's pose for a pose of the pose (and depth) camera: moved by
     /// [`DatasetConfig::colour_offset`] along the camera's own axes.
     pub fn colour_pose(&self, p: Pose) -> Pose {
-        let o = self.colour_offset;
-        if o == [0.0; 3] {
+        if self.colour_offset == [0.0; 3] {
             return p;
         }
+        let centre = p.transform(self.colour_offset);
         let mut m = p.m;
-        for row in &mut m {
-            row[3] += row[0] * o[0] + row[1] * o[1] + row[2] * o[2];
+        for (row, c) in m.iter_mut().zip(centre) {
+            row[3] = c;
         }
         Pose { m }
     }
@@ -835,12 +835,10 @@ impl Selection {
 
     /// Resize and crop a depth image decoded at the native size.
     pub fn finish_depth(&self, img: DepthImage) -> DepthImage {
-        let img = match &self.depth_camera {
-            Some(dk) => img.registered_from(dk, &self.native, self.colour_offset),
-            None if self.colour_offset != [0.0; 3] => {
-                img.registered_from(&self.native, &self.native, self.colour_offset)
-            }
-            None => img,
+        let img = if self.depth_camera.is_some() || self.colour_offset != [0.0; 3] {
+            img.registered_from(self.depth_native(), &self.native, self.colour_offset)
+        } else {
+            img
         };
         let img = match self.resize {
             Some((w, h)) if (w, h) != (img.width, img.height) => img.resized(w, h),
