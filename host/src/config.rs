@@ -114,6 +114,9 @@ struct WarpDef {
     center_beta: f32,
     #[serde(default = "one_u32")]
     stride: u32,
+    // added after checkpoints existed: absent means DIM-SLAM's rule (no term below min_views)
+    #[serde(default)]
+    few_views_weight: f32,
 }
 
 fn one_u32() -> u32 {

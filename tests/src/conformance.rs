@@ -502,8 +502,9 @@ pub fn synthetic_window(
 }
 
 /// A mapping iteration's loss: colour, warping loss (7x7 patches), the depth prior in the
-/// first steps (near-only in step 1), the detached colour in step 2 and a dilated patch in the
-/// even steps.
+/// first steps (near-only in step 1), the detached colour in step 2, a dilated patch in the
+/// even steps and, in the even steps too, a weighted term for pixels with fewer than
+/// `min_views` valid views.
 fn mapping_loss(step: u32, n: usize) -> MappingLoss {
     let mut warp = WarpConfig::dim_slam();
     warp.min_views = 2;
@@ -511,6 +512,7 @@ fn mapping_loss(step: u32, n: usize) -> MappingLoss {
     warp.half = 3;
     // a dilated patch (samples 2 px apart) in the even steps
     warp.stride = 1 + (step + 1) % 2;
+    warp.few_views_weight = if step.is_multiple_of(2) { 0.3 } else { 0.0 };
     MappingLoss {
         lambda_color: 0.1,
         lambda_warp: 1.0,
@@ -590,6 +592,7 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
     // not a multiple of 3: the last two pixels belong to no planarity triplet
     let n = 98;
     let mut any_warp = false;
+    let mut any_few = false;
     {
         let mut cpu = reference.backend(adam);
         for (img, &slot) in images.iter().zip(&slots) {
@@ -655,11 +658,19 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
             );
             assert_eq!(stats_key(&sc), stats_key(&sb), "step {step}");
             any_warp |= rc.iter().any(|r| r.warp_loss != 0.0);
+            let min_views = batch.loss.warp.min_views;
+            any_few |= rc
+                .iter()
+                .any(|r| r.warp_loss != 0.0 && r.warp_views < min_views);
         }
     }
     assert!(
         any_warp,
         "no pixel had a valid warp: the warping loss is not covered"
+    );
+    assert!(
+        any_few,
+        "no pixel had a weighted term below min_views: few_views_weight is not covered"
     );
     for g in Group::ALL {
         assert_ne!(

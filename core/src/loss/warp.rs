@@ -20,7 +20,9 @@
 //!    border (border padding), and a clamped axis has zero derivative.
 //! 4. **Validity** of the pair `(i, j)` is decided from the centre point only:
 //!    `z > MIN_Z`, `margin < u' < W-1-margin`, `margin < v' < H-1-margin`. If fewer than
-//!    `min_views` pairs are valid, the pixel contributes nothing (loss 0, gradient 0). A patch
+//!    `min_views` pairs are valid, the pixel contributes nothing (loss 0, gradient 0), unless
+//!    `few_views_weight` is set: then a pixel with at least one valid pair (but fewer than
+//!    `min_views`) contributes its loss and gradient times that weight (ours: below). A patch
 //!    point (not the centre) with `z <= MIN_Z` inside a valid pair is sampled at its clamped
 //!    coordinates and has zero gradient.
 //! 5. **Per valid pair:** `S11 = ½ Σ_c (1 - SSIM11_c)`, `S7 = ½ Σ_c (1 - SSIM7_c)` (single
@@ -46,6 +48,13 @@
 //!
 //! # Our choices where the paper is silent
 //!
+//! - `few_views_weight` (0 = DIM-SLAM's rule): DIM-SLAM asks for `min_views` valid views so that
+//!   an occluded or specular pair is outvoted. Space that only one or two frames have seen (a
+//!   first look through a doorway, a turn) then gets no warping term at all and stays at
+//!   whatever the field guessed there until more views arrive; a down-weighted term from the
+//!   views it has pulls it towards them meanwhile, and the full term takes over once
+//!   `min_views` frames see it. The scaled sum is `(Σ pairs) * w` and `(Σ d pairs) * w`, one
+//!   multiplication after the sums, on every device.
 //! - Patch size: `half` is clamped to `1..=5` (the storage is 11x11); the first SSIM uses the
 //!   whole `(2h+1)^2` patch and the second the inner `min(7, 2h+1)^2`.
 //! - A term whose weight is exactly 0 (e.g. `w_patch = 0` during DIM-SLAM's first 150
@@ -214,6 +223,9 @@ pub struct WarpConfig {
     /// pixels (a dilated patch, as DSO's sparse patterns), so that a pixel of a plain
     /// surface sees the textured border of its region.
     pub stride: u32,
+    /// Weight (`0..=1`) of the term of a pixel whose centre at least one but fewer than
+    /// `min_views` frames see validly (0 = DIM-SLAM's rule: no term below `min_views`).
+    pub few_views_weight: f32,
 }
 
 impl WarpConfig {
@@ -230,11 +242,12 @@ impl WarpConfig {
             w_center: 0.1,
             center_beta: 0.1,
             stride: 1,
+            few_views_weight: 0.0,
         }
     }
 
     /// Checks the ranges: `half` in `1..=5`, `margin` finite and `>= 0`, weights and
-    /// `center_beta` finite and `>= 0`.
+    /// `center_beta` finite and `>= 0`, `few_views_weight` in `0..=1`.
     pub fn validate(&self) -> Result<(), Error> {
         if self.half < 1 || self.half > MAX_HALF {
             return Err(Error::InvalidConfig("warp: half must be in 1..=5"));
@@ -256,6 +269,11 @@ impl WarpConfig {
                 "warp: center_beta must be finite and >= 0",
             ));
         }
+        if !(ok(self.few_views_weight) && self.few_views_weight <= 1.0) {
+            return Err(Error::InvalidConfig(
+                "warp: few_views_weight must be in 0..=1",
+            ));
+        }
         Ok(())
     }
 }
@@ -270,7 +288,8 @@ impl Default for WarpConfig {
 #[derive(Clone, Copy, Debug, PartialEq, Default)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct WarpResult {
-    /// Sum of the pair losses over the valid pairs (0 if fewer than `min_views`).
+    /// Sum of the pair losses over the valid pairs (below `min_views`: 0, or times
+    /// `few_views_weight` when that is set).
     pub loss: f32,
     /// `d loss / d depth`.
     pub d_depth: f32,
@@ -535,7 +554,9 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     let mut centres = [[0.0f32; 2]; MAX_WINDOW];
     let (mask, count) =
         valid_views::<I, PS>(cfg, k, poses, n, src, xw[centre], (w, h), &mut centres);
-    if count < cfg.min_views || count == 0 {
+    // Fewer than `min_views`: no term, or the down-weighted one (module docs).
+    let few = count < cfg.min_views;
+    if (few && cfg.few_views_weight == 0.0) || count == 0 {
         return WarpResult {
             loss: 0.0,
             d_depth: 0.0,
@@ -616,6 +637,10 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
         }
     }
 
+    if few {
+        loss *= cfg.few_views_weight;
+        d_depth *= cfg.few_views_weight;
+    }
     WarpResult {
         loss,
         d_depth,
@@ -1364,6 +1389,7 @@ mod tests {
             ),
             (0.2, 0.6, 0.5, 0.1, 0.1)
         );
+        assert_eq!(c.few_views_weight, 0.0);
         assert_eq!(c, WarpConfig::default());
         assert!(c.validate().is_ok());
         for bad in [
@@ -1382,6 +1408,14 @@ mod tests {
             },
             WarpConfig {
                 center_beta: f32::INFINITY,
+                ..c
+            },
+            WarpConfig {
+                few_views_weight: 1.5,
+                ..c
+            },
+            WarpConfig {
+                few_views_weight: f32::NAN,
                 ..c
             },
         ] {
@@ -1665,6 +1699,29 @@ mod tests {
             2.0,
         );
         assert_eq!(r, full);
+        // Below min_views with `few_views_weight`: the same pairs, their sums scaled once.
+        for w in [0.25f32, 0.3, 1.0] {
+            let few = WarpConfig {
+                min_views: expected + 1,
+                few_views_weight: w,
+                ..cfg
+            };
+            let r = run(&few, &poses, &data, 0, 16, 24, 2.0);
+            assert_eq!(r.valid_views, expected);
+            assert_eq!(
+                (r.loss.to_bits(), r.d_depth.to_bits()),
+                ((full.loss * w).to_bits(), (full.d_depth * w).to_bits()),
+                "weight {w}"
+            );
+            // At min_views the weight does not act; with no valid view there is no term.
+            let at = WarpConfig {
+                min_views: expected,
+                ..few
+            };
+            assert_eq!(run(&at, &poses, &data, 0, 16, 24, 2.0), full);
+            let none = run(&few, &poses, &data, 0, 16, 24, f32::NAN);
+            assert_eq!((none.loss, none.d_depth, none.valid_views), (0.0, 0.0, 0));
+        }
         // Depth -1 puts the centre at (0.25, 0, -1), behind every camera except the one
         // looking away (frame 3, R = diag(-1, 1, -1)), which sees it at (-0.25, 0, 1), i.e.
         // u' = 64 (-0.25) + 32 = 16, v' = 24: one view. A NaN depth is valid nowhere.
