@@ -117,6 +117,9 @@ struct WarpDef {
     // added after checkpoints existed: absent means DIM-SLAM's rule (no term below min_views)
     #[serde(default)]
     few_views_weight: f32,
+    // added after checkpoints existed: absent means no texture test
+    #[serde(default)]
+    few_views_min_grad: f32,
 }
 
 fn one_u32() -> u32 {

@@ -504,7 +504,8 @@ pub fn synthetic_window(
 /// A mapping iteration's loss: colour, warping loss (7x7 patches), the depth prior in the
 /// first steps (near-only in step 1), the detached colour in step 2, a dilated patch in the
 /// even steps and, in the even steps too, a weighted term for pixels with fewer than
-/// `min_views` valid views.
+/// `min_views` valid views (in step 2 only from the pairs along whose epipolar line the
+/// source patch has texture).
 fn mapping_loss(step: u32, n: usize) -> MappingLoss {
     let mut warp = WarpConfig::dim_slam();
     warp.min_views = 2;
@@ -513,6 +514,8 @@ fn mapping_loss(step: u32, n: usize) -> MappingLoss {
     // a dilated patch (samples 2 px apart) in the even steps
     warp.stride = 1 + (step + 1) % 2;
     warp.few_views_weight = if step.is_multiple_of(2) { 0.3 } else { 0.0 };
+    // step 2: the texture test of those pairs
+    warp.few_views_min_grad = if step == 2 { 0.05 } else { 0.0 };
     MappingLoss {
         lambda_color: 0.1,
         lambda_warp: 1.0,
@@ -593,6 +596,8 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
     let n = 98;
     let mut any_warp = false;
     let mut any_few = false;
+    // step 2: below min_views, some pixel kept its term and some lost it to the texture test
+    let (mut kept_textured, mut dropped_plain) = (false, false);
     {
         let mut cpu = reference.backend(adam);
         for (img, &slot) in images.iter().zip(&slots) {
@@ -662,6 +667,11 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
             any_few |= rc
                 .iter()
                 .any(|r| r.warp_loss != 0.0 && r.warp_views < min_views);
+            if batch.loss.warp.few_views_min_grad > 0.0 {
+                let few = |r: &&PixelResult| r.warp_views > 0 && r.warp_views < min_views;
+                kept_textured |= rc.iter().filter(few).any(|r| r.warp_loss != 0.0);
+                dropped_plain |= rc.iter().filter(few).any(|r| r.warp_loss == 0.0);
+            }
         }
     }
     assert!(
@@ -671,6 +681,10 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
     assert!(
         any_few,
         "no pixel had a weighted term below min_views: few_views_weight is not covered"
+    );
+    assert!(
+        kept_textured && dropped_plain,
+        "few_views_min_grad kept {kept_textured}, dropped {dropped_plain}: not covered both ways"
     );
     for g in Group::ALL {
         assert_ne!(

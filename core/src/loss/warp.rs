@@ -55,6 +55,15 @@
 //!   views it has pulls it towards them meanwhile, and the full term takes over once
 //!   `min_views` frames see it. The scaled sum is `(Σ pairs) * w` and `(Σ d pairs) * w`, one
 //!   multiplication after the sums, on every device.
+//! - `few_views_min_grad` (0 = no test): the down-weighted term keeps only the pairs whose
+//!   epipolar line crosses texture in the source patch. With `(sxx, sxy, syy)` the mean
+//!   structure tensor of the patch's inner `(2h-1)^2` samples (central differences per source
+//!   pixel, the three channels averaged) and `e = (fx tx - (u - cx) tz, fy ty - (v - cy) tz)`
+//!   the epipolar direction through `p` towards frame `j`'s centre `t` (in the source camera),
+//!   a pair is kept when `eᵀ S e >= min_grad² |e|²`, i.e. the RMS gradient along the line is
+//!   at least `min_grad`. Along a line without texture (a plain or smoothly shaded wall, bands
+//!   parallel to the motion) one or two views do not determine the depth; with `min_views`
+//!   views the full term is kept whatever the texture (DIM-SLAM's rule).
 //! - Patch size: `half` is clamped to `1..=5` (the storage is 11x11); the first SSIM uses the
 //!   whole `(2h+1)^2` patch and the second the inner `min(7, 2h+1)^2`.
 //! - A term whose weight is exactly 0 (e.g. `w_patch = 0` during DIM-SLAM's first 150
@@ -226,6 +235,10 @@ pub struct WarpConfig {
     /// Weight (`0..=1`) of the term of a pixel whose centre at least one but fewer than
     /// `min_views` frames see validly (0 = DIM-SLAM's rule: no term below `min_views`).
     pub few_views_weight: f32,
+    /// A pair of the `few_views_weight` term needs the source patch's texture along its
+    /// epipolar line: the RMS image gradient along it (intensity per pixel, over the patch's
+    /// inner samples and the channels) at least this (0 = no test).
+    pub few_views_min_grad: f32,
 }
 
 impl WarpConfig {
@@ -243,6 +256,7 @@ impl WarpConfig {
             center_beta: 0.1,
             stride: 1,
             few_views_weight: 0.0,
+            few_views_min_grad: 0.0,
         }
     }
 
@@ -267,6 +281,11 @@ impl WarpConfig {
         if !ok(self.center_beta) {
             return Err(Error::InvalidConfig(
                 "warp: center_beta must be finite and >= 0",
+            ));
+        }
+        if !ok(self.few_views_min_grad) {
+            return Err(Error::InvalidConfig(
+                "warp: few_views_min_grad must be finite and >= 0",
             ));
         }
         if !(ok(self.few_views_weight) && self.few_views_weight <= 1.0) {
@@ -554,9 +573,15 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     let mut centres = [[0.0f32; 2]; MAX_WINDOW];
     let (mask, count) =
         valid_views::<I, PS>(cfg, k, poses, n, src, xw[centre], (w, h), &mut centres);
-    // Fewer than `min_views`: no term, or the down-weighted one (module docs).
+    // Fewer than `min_views`: no term, or the down-weighted one from the pairs along whose
+    // epipolar line the source patch has texture (module docs).
     let few = count < cfg.min_views;
-    if (few && cfg.few_views_weight == 0.0) || count == 0 {
+    let few_w = cfg.few_views_weight;
+    let mut mask = mask;
+    if few && few_w != 0.0 && cfg.few_views_min_grad > 0.0 {
+        mask = textured_pairs(cfg, k, poses, (u, v), &pose_s, &src_patch, mask);
+    }
+    if (few && few_w == 0.0) || mask == 0 {
         return WarpResult {
             loss: 0.0,
             d_depth: 0.0,
@@ -638,8 +663,8 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     }
 
     if few {
-        loss *= cfg.few_views_weight;
-        d_depth *= cfg.few_views_weight;
+        loss *= few_w;
+        d_depth *= few_w;
     }
     WarpResult {
         loss,
@@ -759,6 +784,65 @@ fn source_patch<I: FrameImages + ?Sized>(
         }
         dy += 1;
     }
+}
+
+/// The pairs of `mask` along whose epipolar line (in the source image, through pixel
+/// `(u, v)`) the source patch has an RMS gradient of at least `cfg.few_views_min_grad`.
+#[inline(always)]
+fn textured_pairs<PS: PoseRead + ?Sized>(
+    cfg: &WarpConfig,
+    k: &Intrinsics,
+    poses: &PS,
+    (u, v): (u32, u32),
+    pose_s: &Pose,
+    src_patch: &Patch,
+    mask: u32,
+) -> u32 {
+    // The structure tensor of the inner samples (central differences, per source pixel).
+    let half = patch_half(cfg);
+    let inv = 0.5 / patch_stride(cfg) as f32;
+    let (mut sxx, mut sxy, mut syy) = (0.0f32, 0.0f32, 0.0f32);
+    let mut dy = -(half - 1);
+    while dy < half {
+        let mut dx = -(half - 1);
+        while dx < half {
+            let p = ((dy + MAX_HALF as i32) as usize) * PATCH + (dx + MAX_HALF as i32) as usize;
+            let mut c = 0;
+            while c < 3 {
+                let gx = (src_patch[p + 1][c] - src_patch[p - 1][c]) * inv;
+                let gy = (src_patch[p + PATCH][c] - src_patch[p - PATCH][c]) * inv;
+                sxx += gx * gx;
+                sxy += gx * gy;
+                syy += gy * gy;
+                c += 1;
+            }
+            dx += 1;
+        }
+        dy += 1;
+    }
+    let side = (2 * half - 1) as f32;
+    let norm = 1.0 / (side * side * 3.0);
+    let (sxx, sxy, syy) = (sxx * norm, sxy * norm, syy * norm);
+    let thr = cfg.few_views_min_grad * cfg.few_views_min_grad;
+    let (xu, yv) = (u as f32 - k.cx, v as f32 - k.cy);
+    let mut out = 0u32;
+    let mut j = 0;
+    while j < MAX_WINDOW {
+        if mask & (1u32 << j) != 0 {
+            // Frame j's centre in the source camera; the epipolar line through (u, v)
+            // runs along (fx tx - (u - cx) tz, fy ty - (v - cy) tz).
+            let t = pose_s.inverse_transform(poses.pose(j).origin());
+            let ex = k.fx * t[0] - xu * t[2];
+            let ey = k.fy * t[1] - yv * t[2];
+            let n2 = ex * ex + ey * ey;
+            let e = (sxx * (ex * ex) + 2.0 * sxy * (ex * ey)) + syy * (ey * ey);
+            if n2 > 0.0 && e >= thr * n2 {
+                out |= 1u32 << j;
+            }
+        }
+        j += 1;
+    }
+    out
 }
 
 /// How many window frames (the source excluded) see pixel `(u, v)` of frame `src` at `depth`
@@ -1418,6 +1502,14 @@ mod tests {
                 few_views_weight: f32::NAN,
                 ..c
             },
+            WarpConfig {
+                few_views_min_grad: -0.01,
+                ..c
+            },
+            WarpConfig {
+                few_views_min_grad: f32::INFINITY,
+                ..c
+            },
         ] {
             assert!(
                 matches!(bad.validate(), Err(Error::InvalidConfig(_))),
@@ -1748,6 +1840,58 @@ mod tests {
         assert_eq!(r, WarpResult::default());
         let r = warp_pixel(&cfg, &k, &poses[..], 1000, 0, 16, 24, 2.0, &img);
         assert_eq!(r, full);
+    }
+
+    /// The texture test of the few-views term: a patch of vertical stripes (gradient 0.1
+    /// per pixel along x, none along y) keeps the pairs whose epipolar line through the
+    /// pixel runs along x (a sideways baseline, or one along the optical axis for a pixel
+    /// beside the principal point) and drops those along y; the RMS gradient along x is 0.1
+    /// (up to rounding), so a threshold just below keeps and one just above drops.
+    #[test]
+    fn few_views_texture_test_follows_the_epipolar_line() {
+        let k = intrinsics();
+        let mut patch: Patch = [[0.0; 3]; PATCH_PIXELS];
+        for (p, px) in patch.iter_mut().enumerate() {
+            let dx = (p % PATCH) as f32 - MAX_HALF as f32;
+            *px = [0.5 + 0.1 * dx; 3];
+        }
+        let at = |t: [f32; 3]| {
+            let mut m = Pose::IDENTITY;
+            (m.m[0][3], m.m[1][3], m.m[2][3]) = (t[0], t[1], t[2]);
+            m
+        };
+        // frames 1..4: along x, along y, along z, along x and y
+        let poses = [
+            Pose::IDENTITY,
+            at([0.1, 0.0, 0.0]),
+            at([0.0, 0.1, 0.0]),
+            at([0.0, 0.0, 0.2]),
+            at([0.1, 0.1, 0.0]),
+        ];
+        let test = |min_grad: f32, (u, v): (u32, u32)| {
+            let cfg = WarpConfig {
+                few_views_min_grad: min_grad,
+                ..WarpConfig::dim_slam()
+            };
+            textured_pairs(&cfg, &k, &poses[..], (u, v), &poses[0], &patch, 0b11110)
+        };
+        // beside the principal point (cx + 10): z moves along x too; on it, z gives no line
+        assert_eq!(test(0.099, (42, 24)), 0b00010 | 0b01000);
+        assert_eq!(test(0.099, (32, 24)), 0b00010);
+        // the diagonal baseline: RMS 0.1 / sqrt(2) along it
+        assert_eq!(test(0.07, (32, 24)), 0b10010);
+        assert_eq!(test(0.072, (32, 24)), 0b00010);
+        assert_eq!(test(0.101, (42, 24)), 0);
+        // and a flat patch keeps nothing
+        let flat: Patch = [[0.3; 3]; PATCH_PIXELS];
+        let cfg = WarpConfig {
+            few_views_min_grad: 1e-6,
+            ..WarpConfig::dim_slam()
+        };
+        assert_eq!(
+            textured_pairs(&cfg, &k, &poses[..], (32, 24), &poses[0], &flat, 0b11110),
+            0
+        );
     }
 
     /// A grazing view: camera 1 cm in front of the plane, 5 cm to the left of the centre point,
