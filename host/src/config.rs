@@ -497,7 +497,12 @@ impl Config {
     ///   a term at half weight from the views a pixel has (`mapper.warp.few_views_weight`
     ///   0.5; DIM-SLAM's rule gives none): house walks 7 and 17, frames 0..115, three
     ///   mapping seeds each: mean Depth L1 of the newest frame 20.8 and 22.3 cm against 27.4
-    ///   and 40.0 cm without (the first look of walk 17 at frame 19: 218 -> 98 cm);
+    ///   and 40.0 cm without (the first look of walk 17 at frame 19: 218 -> 98 cm), its
+    ///   pairs only where the source patch has texture along their epipolar line (RMS
+    ///   gradient >= 0.01 per pixel, `mapper.warp.few_views_min_grad`; 2-3x real frames'
+    ///   noise floor at 320x240): house walk 0's third room of plain and smoothly shaded
+    ///   walls, frames 0..250, two mapping seeds, worst 5-update window 80 and 86 -> 69 and
+    ///   69 cm;
     /// - a final refinement of 2000 iterations (1000 before the plane priors) whose colour
     ///   loss, weighted 10, reaches the
     ///   geometry (`mapper.refine_color_to_geometry`, `refine_lambda_color`): every view is
@@ -535,6 +540,7 @@ impl Config {
         c.mapper.max_keyframes = 128;
         c.mapper.warp.min_views = 3;
         c.mapper.warp.few_views_weight = 0.5;
+        c.mapper.warp.few_views_min_grad = 0.01;
         c.mapper.iters = 60;
         c.mapper.refine_iters = 2000;
         c.mapper.refine_color_to_geometry = true;
