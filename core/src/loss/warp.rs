@@ -571,13 +571,12 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
 
     // Pass 1: validity of every pair from the centre point.
     let mut centres = [[0.0f32; 2]; MAX_WINDOW];
-    let (mask, count) =
+    let (mut mask, count) =
         valid_views::<I, PS>(cfg, k, poses, n, src, xw[centre], (w, h), &mut centres);
     // Fewer than `min_views`: no term, or the down-weighted one from the pairs along whose
     // epipolar line the source patch has texture (module docs).
     let few = count < cfg.min_views;
     let few_w = cfg.few_views_weight;
-    let mut mask = mask;
     if few && few_w != 0.0 && cfg.few_views_min_grad > 0.0 {
         mask = textured_pairs(cfg, k, poses, (u, v), &pose_s, &src_patch, mask);
     }
