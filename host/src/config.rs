@@ -120,6 +120,9 @@ struct WarpDef {
     // added after checkpoints existed: absent means no texture test
     #[serde(default)]
     few_views_min_grad: f32,
+    // added after checkpoints existed: absent means no texture test on the main term
+    #[serde(default)]
+    min_grad: f32,
 }
 
 fn one_u32() -> u32 {
@@ -502,7 +505,10 @@ impl Config {
     ///   gradient >= 0.01 per pixel, `mapper.warp.few_views_min_grad`; 2-3x real frames'
     ///   noise floor at 320x240): house walk 0's third room of plain and smoothly shaded
     ///   walls, frames 0..250, two mapping seeds, worst 5-update window 80 and 86 -> 69 and
-    ///   69 cm;
+    ///   69 cm; and the full term's pairs too need an RMS gradient of 0.005 along their line
+    ///   (`mapper.warp.min_grad`; on a plain patch the loss is flat in depth and its
+    ///   gradient noise moved plain walls: house seed 29, frames 0..275, worst 5-update
+    ///   window 68.3 -> 42.3 cm; 0.01 cost ICL's Depth L1 its bar, 6.5 -> 9.8 cm);
     /// - a final refinement of 2000 iterations (1000 before the plane priors) whose colour
     ///   loss, weighted 10, reaches the
     ///   geometry (`mapper.refine_color_to_geometry`, `refine_lambda_color`): every view is
@@ -541,6 +547,7 @@ impl Config {
         c.mapper.warp.min_views = 3;
         c.mapper.warp.few_views_weight = 0.5;
         c.mapper.warp.few_views_min_grad = 0.01;
+        c.mapper.warp.min_grad = 0.005;
         c.mapper.iters = 60;
         c.mapper.refine_iters = 2000;
         c.mapper.refine_color_to_geometry = true;
@@ -589,6 +596,8 @@ impl Config {
         c.mapper.warp.min_views = 4;
         // and no term below them (DIM-SLAM's rule; measured with the weight: ARCHITECTURE.md)
         c.mapper.warp.few_views_weight = 0.0;
+        // and DIM-SLAM's full term on every pixel (no texture test of its pairs)
+        c.mapper.warp.min_grad = 0.0;
         c
     }
 

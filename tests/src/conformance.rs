@@ -505,7 +505,7 @@ pub fn synthetic_window(
 /// first steps (near-only in step 1), the detached colour in step 2, a dilated patch in the
 /// even steps and, in the even steps too, a weighted term for pixels with fewer than
 /// `min_views` valid views (in step 2 only from the pairs along whose epipolar line the
-/// source patch has texture).
+/// source patch has texture; in step 3 the same test on the main term's pairs).
 fn mapping_loss(step: u32, n: usize) -> MappingLoss {
     let mut warp = WarpConfig::dim_slam();
     warp.min_views = 2;
@@ -516,6 +516,8 @@ fn mapping_loss(step: u32, n: usize) -> MappingLoss {
     warp.few_views_weight = if step.is_multiple_of(2) { 0.3 } else { 0.0 };
     // step 2: the texture test of those pairs
     warp.few_views_min_grad = if step == 2 { 0.05 } else { 0.0 };
+    // step 3: the texture test of the main term's pairs
+    warp.min_grad = if step == 3 { 0.05 } else { 0.0 };
     MappingLoss {
         lambda_color: 0.1,
         lambda_warp: 1.0,
@@ -598,6 +600,7 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
     let mut any_few = false;
     // step 2: below min_views, some pixel kept its term and some lost it to the texture test
     let (mut kept_textured, mut dropped_plain) = (false, false);
+    let (mut main_kept, mut main_dropped) = (false, false);
     {
         let mut cpu = reference.backend(adam);
         for (img, &slot) in images.iter().zip(&slots) {
@@ -672,6 +675,11 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
                 kept_textured |= rc.iter().filter(few).any(|r| r.warp_loss != 0.0);
                 dropped_plain |= rc.iter().filter(few).any(|r| r.warp_loss == 0.0);
             }
+            if batch.loss.warp.min_grad > 0.0 {
+                let main = |r: &&PixelResult| r.warp_views >= min_views;
+                main_kept |= rc.iter().filter(main).any(|r| r.warp_loss != 0.0);
+                main_dropped |= rc.iter().filter(main).any(|r| r.warp_loss == 0.0);
+            }
         }
     }
     assert!(
@@ -685,6 +693,10 @@ pub fn mapping_steps<C: Candidate>(c: &C) {
     assert!(
         kept_textured && dropped_plain,
         "few_views_min_grad kept {kept_textured}, dropped {dropped_plain}: not covered both ways"
+    );
+    assert!(
+        main_kept && main_dropped,
+        "min_grad kept {main_kept}, dropped {main_dropped}: not covered both ways"
     );
     for g in Group::ALL {
         assert_ne!(

@@ -14,8 +14,8 @@
 //! | [`GridConfig`] | [`GRID_CONFIG`] = 11 | kind, levels, channels, cell_sizes (8) |
 //! | [`ModelConfig`] | [`MODEL_CONFIG`] = 40 | aabb (6), geometry grid config (11), appearance grid config (11), hidden, hidden_layers, dual_path, render_mode, samples, beta_init, grid_init_std, sdf_bias_init, max_depth, min_transmittance, far_samples, far_depth |
 //! | [`ModelLayout`] | [`MODEL_LAYOUT`] = 263 | config, geometry grid layout, appearance grid layout, geometry MLP layout, appearance MLP layout |
-//! | [`MappingLoss`] | [`MAPPING_LOSS`] = 25 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior, depth_prior_near, planar (weight, edge, beta), warp stride, planar gated, lambda_plane, warp few_views_weight, warp few_views_min_grad |
-//! | window | [`WINDOW`] = 450 | intrinsics, frames, image width, image height, slots ([`MAX_WINDOW`]), poses ([`MAX_WINDOW`] x [`POSE`]), mapping loss, where the depth priors start in the image buffer ([`WINDOW_PRIORS`]) |
+//! | [`MappingLoss`] | [`MAPPING_LOSS`] = 26 | lambda_color, lambda_warp, color_scale, warp_scale, color_to_geometry, seed, warp (half, margin, min_views, w_patch11, w_patch7, w_patch, w_center, center_beta), lambda_depth_prior, depth_prior, depth_prior_near, planar (weight, edge, beta), warp stride, planar gated, lambda_plane, warp few_views_weight, warp few_views_min_grad, warp min_grad |
+//! | window | [`WINDOW`] = 451 | intrinsics, frames, image width, image height, slots ([`MAX_WINDOW`]), poses ([`MAX_WINDOW`] x [`POSE`]), mapping loss, where the depth priors start in the image buffer ([`WINDOW_PRIORS`]) |
 
 use crate::camera::{Intrinsics, Pose, PoseRead};
 use crate::field::grid::{GridConfig, GridKind, GridLayout, LevelLayout, MAX_LEVELS};
@@ -68,7 +68,7 @@ pub fn split(w: &[u32], k: usize) -> usize {
 }
 
 /// Words of a [`MappingLoss`].
-pub const MAPPING_LOSS: usize = 25;
+pub const MAPPING_LOSS: usize = 26;
 /// Offset of the slot table in the window words.
 pub const WINDOW_SLOTS: usize = INTRINSICS + 3;
 /// Offset of the poses in the window words.
@@ -420,6 +420,7 @@ pub fn mapping_loss_from_words(w: &[u32], at: usize) -> MappingLoss {
             stride: word(w, at + 20),
             few_views_weight: fword(w, at + 23),
             few_views_min_grad: fword(w, at + 24),
+            min_grad: fword(w, at + 25),
         },
         lambda_depth_prior: fword(w, at + 14),
         depth_prior: fword(w, at + 15),
@@ -462,6 +463,7 @@ pub fn mapping_loss_to_words(l: &MappingLoss, w: &mut [u32], at: usize) {
     put(w, at + 22, l.lambda_plane.to_bits());
     put(w, at + 23, l.warp.few_views_weight.to_bits());
     put(w, at + 24, l.warp.few_views_min_grad.to_bits());
+    put(w, at + 25, l.warp.min_grad.to_bits());
 }
 
 /// Window frame count, image size and slot table from window words at 0.

@@ -62,8 +62,12 @@
 //!   the epipolar direction through `p` towards frame `j`'s centre `t` (in the source camera),
 //!   a pair is kept when `eᵀ S e >= min_grad² |e|²`, i.e. the RMS gradient along the line is
 //!   at least `min_grad`. Along a line without texture (a plain or smoothly shaded wall, bands
-//!   parallel to the motion) one or two views do not determine the depth; with `min_views`
-//!   views the full term is kept whatever the texture (DIM-SLAM's rule).
+//!   parallel to the motion) one or two views do not determine the depth.
+//! - `min_grad` (0 = no test, DIM-SLAM's rule): the same test on the pairs of a pixel with
+//!   `min_views` valid views. On a plain patch the loss is flat in depth however many views
+//!   see it, and its gradient is noise that Adam turns into full-size steps of the plain
+//!   surfaces; the test leaves them to the field's other constraints. A pixel whose pairs
+//!   all fail contributes nothing (its `valid_views` is still reported).
 //! - Patch size: `half` is clamped to `1..=5` (the storage is 11x11); the first SSIM uses the
 //!   whole `(2h+1)^2` patch and the second the inner `min(7, 2h+1)^2`.
 //! - A term whose weight is exactly 0 (e.g. `w_patch = 0` during DIM-SLAM's first 150
@@ -239,6 +243,10 @@ pub struct WarpConfig {
     /// epipolar line: the RMS image gradient along it (intensity per pixel, over the patch's
     /// inner samples and the channels) at least this (0 = no test).
     pub few_views_min_grad: f32,
+    /// The same test for the pairs of a pixel with at least `min_views` valid views (the
+    /// main term; 0 = no test, DIM-SLAM's rule): on a plain patch the loss is flat in depth,
+    /// so its gradient is noise that moves plain walls.
+    pub min_grad: f32,
 }
 
 impl WarpConfig {
@@ -257,6 +265,7 @@ impl WarpConfig {
             stride: 1,
             few_views_weight: 0.0,
             few_views_min_grad: 0.0,
+            min_grad: 0.0,
         }
     }
 
@@ -286,6 +295,11 @@ impl WarpConfig {
         if !ok(self.few_views_min_grad) {
             return Err(Error::InvalidConfig(
                 "warp: few_views_min_grad must be finite and >= 0",
+            ));
+        }
+        if !ok(self.min_grad) {
+            return Err(Error::InvalidConfig(
+                "warp: min_grad must be finite and >= 0",
             ));
         }
         if !(ok(self.few_views_weight) && self.few_views_weight <= 1.0) {
@@ -573,12 +587,18 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     let mut centres = [[0.0f32; 2]; MAX_WINDOW];
     let (mut mask, count) =
         valid_views::<I, PS>(cfg, k, poses, n, src, xw[centre], (w, h), &mut centres);
-    // Fewer than `min_views`: no term, or the down-weighted one from the pairs along whose
-    // epipolar line the source patch has texture (module docs).
+    // Fewer than `min_views`: no term, or the down-weighted one; either term keeps only the
+    // pairs along whose epipolar line the source patch has texture when its test is on
+    // (module docs).
     let few = count < cfg.min_views;
     let few_w = cfg.few_views_weight;
-    if few && few_w != 0.0 && cfg.few_views_min_grad > 0.0 {
-        mask = textured_pairs(cfg, k, poses, (u, v), &pose_s, &src_patch, mask);
+    let min_grad = if few {
+        cfg.few_views_min_grad
+    } else {
+        cfg.min_grad
+    };
+    if min_grad > 0.0 && (!few || few_w != 0.0) {
+        mask = textured_pairs(cfg, min_grad, k, poses, (u, v), &pose_s, &src_patch, mask);
     }
     if (few && few_w == 0.0) || mask == 0 {
         return WarpResult {
@@ -786,10 +806,12 @@ fn source_patch<I: FrameImages + ?Sized>(
 }
 
 /// The pairs of `mask` along whose epipolar line (in the source image, through pixel
-/// `(u, v)`) the source patch has an RMS gradient of at least `cfg.few_views_min_grad`.
+/// `(u, v)`) the source patch has an RMS gradient of at least `min_grad`.
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn textured_pairs<PS: PoseRead + ?Sized>(
     cfg: &WarpConfig,
+    min_grad: f32,
     k: &Intrinsics,
     poses: &PS,
     (u, v): (u32, u32),
@@ -822,7 +844,7 @@ fn textured_pairs<PS: PoseRead + ?Sized>(
     let side = (2 * half - 1) as f32;
     let norm = 1.0 / (side * side * 3.0);
     let (sxx, sxy, syy) = (sxx * norm, sxy * norm, syy * norm);
-    let thr = cfg.few_views_min_grad * cfg.few_views_min_grad;
+    let thr = min_grad * min_grad;
     let (xu, yv) = (u as f32 - k.cx, v as f32 - k.cy);
     let mut out = 0u32;
     let mut j = 0;
@@ -1867,12 +1889,18 @@ mod tests {
             at([0.0, 0.0, 0.2]),
             at([0.1, 0.1, 0.0]),
         ];
+        let cfg = WarpConfig::dim_slam();
         let test = |min_grad: f32, (u, v): (u32, u32)| {
-            let cfg = WarpConfig {
-                few_views_min_grad: min_grad,
-                ..WarpConfig::dim_slam()
-            };
-            textured_pairs(&cfg, &k, &poses[..], (u, v), &poses[0], &patch, 0b11110)
+            textured_pairs(
+                &cfg,
+                min_grad,
+                &k,
+                &poses[..],
+                (u, v),
+                &poses[0],
+                &patch,
+                0b11110,
+            )
         };
         // beside the principal point (cx + 10): z moves along x too; on it, z gives no line
         assert_eq!(test(0.099, (42, 24)), 0b00010 | 0b01000);
@@ -1883,12 +1911,17 @@ mod tests {
         assert_eq!(test(0.101, (42, 24)), 0);
         // and a flat patch keeps nothing
         let flat: Patch = [[0.3; 3]; PATCH_PIXELS];
-        let cfg = WarpConfig {
-            few_views_min_grad: 1e-6,
-            ..WarpConfig::dim_slam()
-        };
         assert_eq!(
-            textured_pairs(&cfg, &k, &poses[..], (32, 24), &poses[0], &flat, 0b11110),
+            textured_pairs(
+                &cfg,
+                1e-6,
+                &k,
+                &poses[..],
+                (32, 24),
+                &poses[0],
+                &flat,
+                0b11110
+            ),
             0
         );
     }
