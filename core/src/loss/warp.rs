@@ -591,21 +591,24 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     // pairs along whose epipolar line the source patch has texture when its test is on
     // (module docs).
     let few = count < cfg.min_views;
-    let few_w = cfg.few_views_weight;
+    let none = WarpResult {
+        loss: 0.0,
+        d_depth: 0.0,
+        valid_views: count,
+    };
+    if few && cfg.few_views_weight == 0.0 {
+        return none;
+    }
     let min_grad = if few {
         cfg.few_views_min_grad
     } else {
         cfg.min_grad
     };
-    if min_grad > 0.0 && (!few || few_w != 0.0) {
+    if min_grad > 0.0 {
         mask = textured_pairs(cfg, min_grad, k, poses, (u, v), &pose_s, &src_patch, mask);
     }
-    if (few && few_w == 0.0) || mask == 0 {
-        return WarpResult {
-            loss: 0.0,
-            d_depth: 0.0,
-            valid_views: count,
-        };
+    if mask == 0 {
+        return none;
     }
 
     // The source patch's side of both SSIM terms, shared by every pair.
@@ -682,8 +685,8 @@ pub fn warp_pixel<I: FrameImages + ?Sized, PS: PoseRead + ?Sized>(
     }
 
     if few {
-        loss *= few_w;
-        d_depth *= few_w;
+        loss *= cfg.few_views_weight;
+        d_depth *= cfg.few_views_weight;
     }
     WarpResult {
         loss,
