@@ -31,7 +31,8 @@
 //! jitter); for each with positive opacity and depth `D`, `overlap_points` \[16\] points evenly
 //! spaced on camera depth `[0.8 D, D + 0.5 m]` are back-projected. A keyframe's overlap is the
 //! fraction of these points in front of it and projecting more than `overlap_margin` \[20\] px
-//! inside its image. Keyframes with overlap > 0 are candidates; `window_keyframes` of them are
+//! inside its image. Keyframes with overlap > 0 and at least `overlap_min` \[0\] of the tested
+//! points are candidates; `window_keyframes` of them are
 //! drawn uniformly at random without replacement (all when fewer). Then `global_keyframes`
 //! \[0\] more are drawn uniformly from the rest of the cache, whatever their overlap: the
 //! regions the camera has left keep receiving gradients (their colour term at least; their
@@ -160,6 +161,9 @@ pub struct MapperConfig {
     pub overlap_points: u32,
     /// Projections must fall this far (px) inside a keyframe (20).
     pub overlap_margin: f32,
+    /// Smallest share of the overlap test's points a keyframe must see to be a candidate
+    /// (0 = any point, NICE-SLAM's rule; in [0, 1)).
+    pub overlap_min: f32,
     /// Seed of pixel sampling, keyframe choice and stratified jitter.
     pub seed: u64,
     /// DIM-SLAM's depth prior during the first `depth_prior_iters` initialisation iterations:
@@ -279,6 +283,7 @@ impl MapperConfig {
             overlap_pixels: 100,
             overlap_points: 16,
             overlap_margin: 20.0,
+            overlap_min: 0.0,
             seed: 0,
             lambda_depth_prior: 1.0,
             depth_prior: 1.5,
@@ -409,6 +414,11 @@ impl MapperConfig {
         if !(self.overlap_margin.is_finite() && self.overlap_margin >= 0.0) {
             return Err(Error::InvalidConfig(
                 "mapper: overlap_margin must be finite and >= 0",
+            ));
+        }
+        if !(self.overlap_min >= 0.0 && self.overlap_min < 1.0) {
+            return Err(Error::InvalidConfig(
+                "mapper: overlap_min must be in [0, 1)",
             ));
         }
         let ok = |x: f32| x.is_finite() && x >= 0.0;
@@ -1193,12 +1203,24 @@ impl<'a, B: Backend> Mapper<'a, B> {
     }
 
     /// Writes the cache indices of the keyframes that see any back-projected point of the
-    /// first `n` overlap rays into `candidates` (cache order) and returns their number.
+    /// first `n` overlap rays, and at least `overlap_min` of those tested, into `candidates`
+    /// (cache order) and returns their number.
     fn overlap_candidates(&mut self, n: usize) -> usize {
         let mut n_cand = 0usize;
+        let mut tested = 0u32;
+        let mut r = 0;
+        while r < n {
+            let out = self.overlap_out[r];
+            if out.opacity > 0.0 && out.depth > 0.0 {
+                tested += self.cfg.overlap_points;
+            }
+            r += 1;
+        }
+        let need = self.cfg.overlap_min * tested as f32;
         let mut f = 0;
         while f < self.st.keyframes.len() {
-            if self.overlap_points_inside(self.st.keyframes[f].pose, n) > 0 {
+            let inside = self.overlap_points_inside(self.st.keyframes[f].pose, n);
+            if inside > 0 && inside as f32 >= need {
                 self.candidates[n_cand] = f as u16;
                 n_cand += 1;
             }
@@ -2316,6 +2338,45 @@ mod tests {
         let r = push_n(&mut m, 5).pop().unwrap();
         assert_eq!((r.candidates, r.keyframes, r.window_keyframes), (1, 2, 1));
         assert_eq!(m.window_ids()[0], 5);
+    }
+
+    /// A keyframe that sees only a sliver of the newest frame's points is a candidate under
+    /// NICE-SLAM's rule (any point) and not under a share it does not reach.
+    #[test]
+    fn keyframes_seeing_too_little_of_the_view_are_not_candidates() {
+        let mut shares = [0.0f32; 2];
+        for (i, (min, want)) in [(0.0f32, 1u32), (0.5, 0)].into_iter().enumerate() {
+            let mut c = cfg();
+            c.overlap_margin = 2.0;
+            c.overlap_min = min;
+            let (mut px, mut res) = buffers();
+            let mut m =
+                Mapper::new(Mock::new(c.slots_needed()), c, intr(), &mut px, &mut res).unwrap();
+            let img = image();
+            // frame 0 stands 1.8 m to the side: the current view's points at z in [1.6, 2.5]
+            // land 36-56 px to the left in it, so it sees only the right edge of the view
+            let mut side = Pose::IDENTITY;
+            side.m[0][3] = 1.8;
+            m.push_frame(&img, side).unwrap();
+            let mut last = None;
+            for f in 1..20 {
+                if let Some(r) = m.push_frame(&img, pose(f)).unwrap() {
+                    last = Some(r);
+                }
+            }
+            let r = last.unwrap();
+            assert_eq!(r.kind, UpdateKind::Online);
+            assert_eq!(m.keyframe_ids().collect::<Vec<_>>(), [0]);
+            assert_eq!(r.candidates, want, "overlap_min {min}");
+            assert_eq!(r.window_keyframes, want, "overlap_min {min}");
+            // the share it sees is above 0 and below one half
+            let n = m.render_overlap_rays().unwrap();
+            let inside = m.overlap_points_inside(side, n);
+            shares[i] = inside as f32 / (n as u32 * c.overlap_points) as f32;
+        }
+        for s in shares {
+            assert!(s > 0.0 && s < 0.5, "{s}");
+        }
     }
 
     #[test]

@@ -229,6 +229,9 @@ struct MapperDef {
     overlap_pixels: u32,
     overlap_points: u32,
     overlap_margin: f32,
+    // added after checkpoints existed: absent means any overlap (the behaviour before it)
+    #[serde(default)]
+    overlap_min: f32,
     #[serde(skip)]
     seed: u64,
 }
