@@ -500,10 +500,13 @@ impl Config {
     ///   they still see it (house walk 7, frames 0..115, three mapping seeds each: mean Depth
     ///   L1 of the newest frame 26.4-29.2 cm and worst 5-update window 46-55 cm, against
     ///   31.9-37.0 and 58-80 cm with 4 over four seeds; ICL 6.7 -> 6.2 cm), and below that
-    ///   a term at half weight from the views a pixel has (`mapper.warp.few_views_weight`
-    ///   0.5; DIM-SLAM's rule gives none): house walks 7 and 17, frames 0..115, three
-    ///   mapping seeds each: mean Depth L1 of the newest frame 20.8 and 22.3 cm against 27.4
-    ///   and 40.0 cm without (the first look of walk 17 at frame 19: 218 -> 98 cm), its
+    ///   a down-weighted term from the views a pixel has (`mapper.warp.few_views_weight`
+    ///   0.75, 0.5 before the full term's texture test; DIM-SLAM's rule gives none): house
+    ///   walks 7 and 17, frames 0..115, three mapping seeds each: mean Depth L1 of the newest
+    ///   frame 20.8 and 22.3 cm at 0.5 against 27.4 and 40.0 cm without (the first look of
+    ///   walk 17 at frame 19: 218 -> 98 cm); with the test, 0.75 against 0.5: worst 5-update
+    ///   window 33.4 and 32.7 against 36.7 and 33.5 cm, whole walks 0 and 17 41.1 -> 37.7
+    ///   and 39.0 -> 33.6 cm; its
     ///   pairs only where the source patch has texture along their epipolar line (RMS
     ///   gradient >= 0.01 per pixel, `mapper.warp.few_views_min_grad`; 2-3x real frames'
     ///   noise floor at 320x240): house walk 0's third room of plain and smoothly shaded
@@ -548,7 +551,7 @@ impl Config {
         c.mapper.new_frame_share = 0.75;
         c.mapper.max_keyframes = 128;
         c.mapper.warp.min_views = 3;
-        c.mapper.warp.few_views_weight = 0.5;
+        c.mapper.warp.few_views_weight = 0.75;
         c.mapper.warp.few_views_min_grad = 0.01;
         c.mapper.warp.min_grad = 0.005;
         c.mapper.iters = 60;
