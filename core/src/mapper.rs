@@ -1207,15 +1207,17 @@ impl<'a, B: Backend> Mapper<'a, B> {
     /// (cache order) and returns their number.
     fn overlap_candidates(&mut self, n: usize) -> usize {
         let mut n_cand = 0usize;
-        // 0 (every preset) needs no count: any point inside makes a candidate.
         let mut tested = 0u32;
-        let mut r = 0;
-        while self.cfg.overlap_min > 0.0 && r < n {
-            let out = self.overlap_out[r];
-            if out.opacity > 0.0 && out.depth > 0.0 {
-                tested += self.cfg.overlap_points;
+        // 0 (every preset) needs no count: any point inside makes a candidate.
+        if self.cfg.overlap_min > 0.0 {
+            let mut r = 0;
+            while r < n {
+                let out = self.overlap_out[r];
+                if out.opacity > 0.0 && out.depth > 0.0 {
+                    tested += self.cfg.overlap_points;
+                }
+                r += 1;
             }
-            r += 1;
         }
         let need = self.cfg.overlap_min * tested as f32;
         let mut f = 0;
