@@ -167,6 +167,100 @@ pub fn depth_l1_cm(rendered: &[f32], gt: &[f32]) -> Option<f64> {
     (count > 0).then(|| sum / count as f64 * 100.0)
 }
 
+/// Grey-level standard deviation (the mean of the three channels, colour in `[0, 1]`) over
+/// a pixel's `(2 PLAIN_HALF + 1)^2` neighbourhood below which [`depth_split_cm`] counts it as
+/// plain: a patch the warping loss has nothing to compare on (at the evaluation scale).
+pub const PLAIN_STD: f64 = 0.01;
+
+/// Half size of the neighbourhood of [`PLAIN_STD`] (5 x 5, clamped at the image border).
+pub const PLAIN_HALF: usize = 2;
+
+/// What a view's Depth L1 is made of (centimetres, over the pixels with a valid ground
+/// truth, as [`depth_l1_cm`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DepthSplit {
+    /// The Depth L1 itself.
+    pub l1_cm: f64,
+    /// The part of it from pixels rendered in front of the truth: the mean of
+    /// `max(gt - rendered, 0)` (the rest, `l1_cm - near_cm`, lies behind it).
+    pub near_cm: f64,
+    /// The share of the pixels that are plain ([`PLAIN_STD`]).
+    pub plain_share: f64,
+    /// Depth L1 over the plain pixels alone (`None` without any).
+    pub plain_l1_cm: Option<f64>,
+}
+
+/// [`depth_l1_cm`] split by the sign of the error and by the texture of the frame's colours
+/// (`rgb`: `width * height` RGB triples, row-major, the same pixels as the depths). `None`
+/// when no pixel has a valid ground truth.
+///
+/// # Panics
+/// If the slices' sizes disagree with `width * height`.
+pub fn depth_split_cm(
+    rendered: &[f32],
+    gt: &[f32],
+    rgb: &[f32],
+    width: usize,
+    height: usize,
+) -> Option<DepthSplit> {
+    let n = width * height;
+    assert!(
+        rendered.len() == n && gt.len() == n && rgb.len() == 3 * n,
+        "depth_split_cm: sizes differ"
+    );
+    // Summed-area tables of the grey level and its square.
+    let w1 = width + 1;
+    let mut s1 = vec![0.0f64; w1 * (height + 1)];
+    let mut s2 = vec![0.0f64; w1 * (height + 1)];
+    for y in 0..height {
+        for x in 0..width {
+            let i = 3 * (y * width + x);
+            let g = (rgb[i] as f64 + rgb[i + 1] as f64 + rgb[i + 2] as f64) / 3.0;
+            let (a, b, c) = ((y + 1) * w1 + x, y * w1 + x + 1, y * w1 + x);
+            s1[a + 1] = g + s1[a] + s1[b] - s1[c];
+            s2[a + 1] = g * g + s2[a] + s2[b] - s2[c];
+        }
+    }
+    let (mut sum, mut near, mut count) = (0.0f64, 0.0f64, 0usize);
+    let (mut plain_sum, mut plain_count) = (0.0f64, 0usize);
+    for y in 0..height {
+        for x in 0..width {
+            let i = y * width + x;
+            let g = gt[i];
+            if !(g > 0.0 && g.is_finite()) {
+                continue;
+            }
+            let e = rendered[i] as f64 - g as f64;
+            sum += e.abs();
+            near += (-e).max(0.0);
+            count += 1;
+            let (x0, x1) = (
+                x.saturating_sub(PLAIN_HALF),
+                (x + PLAIN_HALF + 1).min(width),
+            );
+            let (y0, y1) = (
+                y.saturating_sub(PLAIN_HALF),
+                (y + PLAIN_HALF + 1).min(height),
+            );
+            let box_sum =
+                |s: &[f64]| s[y1 * w1 + x1] - s[y0 * w1 + x1] - s[y1 * w1 + x0] + s[y0 * w1 + x0];
+            let k = ((x1 - x0) * (y1 - y0)) as f64;
+            let mean = box_sum(&s1) / k;
+            let var = box_sum(&s2) / k - mean * mean;
+            if var < PLAIN_STD * PLAIN_STD {
+                plain_sum += e.abs();
+                plain_count += 1;
+            }
+        }
+    }
+    (count > 0).then(|| DepthSplit {
+        l1_cm: sum / count as f64 * 100.0,
+        near_cm: near / count as f64 * 100.0,
+        plain_share: plain_count as f64 / count as f64,
+        plain_l1_cm: (plain_count > 0).then(|| plain_sum / plain_count as f64 * 100.0),
+    })
+}
+
 /// The spread of `|rendered - gt|` over many pixels (those with a valid ground truth, as in
 /// [`depth_l1_cm`]), in millimetre bins up to 10 m: a mean Depth L1 can be carried by a few
 /// pixels far off (a surface placed in front of the truth) while most are close, and the
@@ -401,6 +495,36 @@ mod tests {
         // A non-finite rendered depth counts as far off.
         s.add(&[f32::INFINITY], &[1.0]);
         assert_eq!(s.share_at_least(10.0), Some(0.2));
+    }
+
+    #[test]
+    fn depth_split_separates_near_far_and_plain_pixels() {
+        // 8 x 1 image: columns 0-3 one grey (plain), 4-7 alternating black and white
+        // (textured; every 5 x 5 box reaching them from column 2 on has a large spread).
+        let (w, h) = (8usize, 1usize);
+        let mut rgb = vec![0.5f32; 3 * w];
+        for x in 4..8 {
+            let v = if x % 2 == 0 { 0.0 } else { 1.0 };
+            rgb[3 * x..3 * x + 3].copy_from_slice(&[v, v, v]);
+        }
+        // gt 2 m except a hole at column 1; errors (m): col 0 -0.2 (in front), col 2 +0.1,
+        // col 3 -0.3, cols 4-7 +0.05, -0.05, 0, +0.1
+        let gt = [2.0f32, 0.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0];
+        let rd = [1.8f32, 9.0, 2.1, 1.7, 2.05, 1.95, 2.0, 2.1];
+        let s = depth_split_cm(&rd, &gt, &rgb, w, h).unwrap();
+        // 7 valid pixels: |e| sum 0.8 m -> 11.43 cm; in front: 0.2 + 0.3 + 0.05 = 0.55 m
+        assert!((s.l1_cm - 80.0 / 7.0).abs() < 1e-4, "{s:?}");
+        assert!((s.near_cm - 55.0 / 7.0).abs() < 1e-4, "{s:?}");
+        // plain: column 0 (box 0..=2) and the hole's neighbours; column 2's box reaches
+        // column 4 (black against 0.5 grey): textured. Valid plain pixels: column 0 only.
+        assert!((s.plain_share - 1.0 / 7.0).abs() < 1e-12, "{s:?}");
+        assert!((s.plain_l1_cm.unwrap() - 20.0).abs() < 1e-4, "{s:?}");
+        assert!((depth_l1_cm(&rd, &gt).unwrap() - s.l1_cm).abs() < 1e-4);
+        // no valid pixel, and a textured-only view
+        assert_eq!(depth_split_cm(&rd, &[0.0; 8], &rgb, w, h), None);
+        let stripes: Vec<f32> = (0..3 * w).map(|i| ((i / 3) % 2) as f32).collect();
+        let t = depth_split_cm(&rd, &gt, &stripes, w, h).unwrap();
+        assert_eq!((t.plain_share, t.plain_l1_cm), (0.0, None));
     }
 
     #[test]

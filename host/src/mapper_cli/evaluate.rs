@@ -11,6 +11,8 @@ pub(super) struct ViewEval {
     pub(super) psnr: f64,
     pub(super) ssim: f64,
     pub(super) depth_l1_cm: Option<f64>,
+    /// What the Depth L1 is made of: in front of / behind the truth, plain / textured.
+    pub(super) depth_split: Option<crate::metrics::DepthSplit>,
 }
 
 /// Renders `frame`'s view at `ek` and computes PSNR, SSIM and (with a depth) Depth L1.
@@ -36,9 +38,18 @@ where
         .depth
         .as_ref()
         .map(|d| d.resized(ek.width, ek.height).data);
-    let depth_l1_cm = gt_depth.as_ref().and_then(|g| {
-        let depth: Vec<f32> = out.iter().map(|r| r.depth).collect();
-        crate::metrics::depth_l1_cm(&depth, g)
+    let depth: Vec<f32> = out.iter().map(|r| r.depth).collect();
+    let depth_l1_cm = gt_depth
+        .as_ref()
+        .and_then(|g| crate::metrics::depth_l1_cm(&depth, g));
+    let depth_split = gt_depth.as_ref().and_then(|g| {
+        crate::metrics::depth_split_cm(
+            &depth,
+            g,
+            &input.data,
+            ek.width as usize,
+            ek.height as usize,
+        )
     });
     Ok(ViewEval {
         out,
@@ -47,6 +58,7 @@ where
         psnr,
         ssim,
         depth_l1_cm,
+        depth_split,
     })
 }
 

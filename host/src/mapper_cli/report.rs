@@ -13,6 +13,15 @@ pub struct UpdateMetrics {
     pub psnr: f64,
     pub ssim: f64,
     pub depth_l1_cm: Option<f64>,
+    /// What the Depth L1 is made of ([`crate::metrics::depth_split_cm`]): its part from
+    /// pixels rendered in front of the truth, the share of plain pixels (nothing for the
+    /// warping loss to compare) and their Depth L1 alone.
+    #[serde(default)]
+    pub depth_near_cm: Option<f64>,
+    #[serde(default)]
+    pub plain_share: Option<f64>,
+    #[serde(default)]
+    pub depth_l1_plain_cm: Option<f64>,
     /// Loss of the update's first and last iteration.
     pub loss_first: f32,
     pub loss: f32,
@@ -172,7 +181,8 @@ pub(super) fn mean(v: impl Iterator<Item = f64>) -> Option<f64> {
 /// The columns of `metrics.csv`, one row per mapping update.
 pub(super) const CSV_HEADER: &str =
     "frame,kind,psnr,ssim,depth_l1_cm,loss_first,loss,color_loss,warp_loss,\
-warp_valid,window_keyframes,iters,seconds,open_rays,new_loss_ratio,new_warp_valid";
+warp_valid,window_keyframes,iters,seconds,open_rays,new_loss_ratio,new_warp_valid,\
+depth_near_cm,plain_share,depth_l1_plain_cm";
 
 /// Writes `metrics.csv`: the header and every row so far, atomically ([`crate::atomic`]).
 pub(super) fn write_metrics(path: &Path, rows: &[UpdateMetrics]) -> anyhow::Result<()> {
@@ -192,7 +202,7 @@ pub(super) fn write_csv_row(
 ) -> std::io::Result<()> {
     writeln!(
         csv,
-        "{},{},{:.4},{:.4},{},{:.6},{:.6},{:.6},{:.6},{:.4},{},{},{:.3},{:.4},{:.3},{:.4}",
+        "{},{},{:.4},{:.4},{},{:.6},{:.6},{:.6},{:.6},{:.4},{},{},{:.3},{:.4},{:.3},{:.4},{},{},{}",
         r.frame,
         r.kind,
         r.psnr,
@@ -208,7 +218,14 @@ pub(super) fn write_csv_row(
         r.seconds,
         r.open_rays,
         r.new_loss_ratio,
-        r.new_warp_valid
+        r.new_warp_valid,
+        r.depth_near_cm
+            .map(|d| format!("{d:.3}"))
+            .unwrap_or_default(),
+        r.plain_share.map(|d| format!("{d:.4}")).unwrap_or_default(),
+        r.depth_l1_plain_cm
+            .map(|d| format!("{d:.3}"))
+            .unwrap_or_default()
     )
 }
 
@@ -380,4 +397,60 @@ pub fn summary_table(s: &MapSummary) -> String {
         s.seconds_per_frame
     );
     t
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_metrics_row_has_a_field_per_column_and_empty_fields_for_missing_values() {
+        let mut r = UpdateMetrics {
+            frame: 94,
+            kind: "online".into(),
+            psnr: 22.5,
+            ssim: 0.75,
+            depth_l1_cm: Some(48.259),
+            loss_first: 0.12,
+            loss: 0.1,
+            color_loss: 0.01,
+            warp_loss: 0.09,
+            warp_valid: 0.8,
+            open_rays: 0.0,
+            new_loss_ratio: 2.6,
+            new_warp_valid: 0.8,
+            depth_near_cm: Some(36.857),
+            plain_share: Some(0.4549),
+            depth_l1_plain_cm: Some(62.095),
+            window_keyframes: 3,
+            iters: 60,
+            seconds: 2.7,
+        };
+        let columns: Vec<&str> = CSV_HEADER.split(',').collect();
+        let line = |r: &UpdateMetrics| {
+            let mut buf = Vec::new();
+            write_csv_row(&mut buf, r).unwrap();
+            String::from_utf8(buf).unwrap().trim_end().to_string()
+        };
+        let full = line(&r);
+        let fields: Vec<&str> = full.split(',').collect();
+        assert_eq!(fields.len(), columns.len(), "{full}");
+        let at = |name: &str| fields[columns.iter().position(|c| *c == name).unwrap()];
+        assert_eq!(at("depth_l1_cm"), "48.259");
+        assert_eq!(at("depth_near_cm"), "36.857");
+        assert_eq!(at("plain_share"), "0.4549");
+        assert_eq!(at("depth_l1_plain_cm"), "62.095");
+        // the columns the earlier sessions' scripts read by position stay where they were
+        assert_eq!(columns[4], "depth_l1_cm");
+        assert_eq!(columns[15], "new_warp_valid");
+        // a view without ground-truth depth leaves the depth fields empty
+        r.depth_l1_cm = None;
+        r.depth_near_cm = None;
+        r.plain_share = None;
+        r.depth_l1_plain_cm = None;
+        let bare = line(&r);
+        let fields: Vec<&str> = bare.split(',').collect();
+        assert_eq!(fields.len(), columns.len(), "{bare}");
+        assert!(fields[16..].iter().all(|f| f.is_empty()), "{bare}");
+    }
 }

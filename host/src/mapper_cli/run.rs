@@ -689,6 +689,7 @@ impl<'o> UpdateRecorder<'o> {
         let cfg = &self.opts.config;
         let eval = cfg.eval.every > 0 && u.is_multiple_of(cfg.eval.every as usize);
         let (mut psnr, mut ssim, mut dl1) = (f64::NAN, f64::NAN, None);
+        let mut split = None;
         // The live view shows every update's render, evaluated or not.
         let mut view = None;
         if eval || self.live.is_some() {
@@ -696,6 +697,7 @@ impl<'o> UpdateRecorder<'o> {
         }
         if let Some(v) = view.as_ref().filter(|_| eval) {
             (psnr, ssim, dl1) = (v.psnr, v.ssim, v.depth_l1_cm);
+            split = v.depth_split;
             if u.is_multiple_of(self.render_every) {
                 let p = self
                     .opts
@@ -716,6 +718,9 @@ impl<'o> UpdateRecorder<'o> {
             psnr,
             ssim,
             depth_l1_cm: dl1,
+            depth_near_cm: split.map(|s| s.near_cm),
+            plain_share: split.map(|s| s.plain_share),
+            depth_l1_plain_cm: split.and_then(|s| s.plain_l1_cm),
             loss_first: report.first.loss,
             loss: report.last.loss,
             color_loss: report.last.color_loss,
