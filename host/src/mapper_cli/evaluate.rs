@@ -39,9 +39,7 @@ where
         .as_ref()
         .map(|d| d.resized(ek.width, ek.height).data);
     let depth: Vec<f32> = out.iter().map(|r| r.depth).collect();
-    let depth_l1_cm = gt_depth
-        .as_ref()
-        .and_then(|g| crate::metrics::depth_l1_cm(&depth, g));
+    // The split sums `|rendered - gt|` in `depth_l1_cm`'s order: its `l1_cm` is that value.
     let depth_split = gt_depth.as_ref().and_then(|g| {
         crate::metrics::depth_split_cm(
             &depth,
@@ -57,7 +55,7 @@ where
         gt_depth,
         psnr,
         ssim,
-        depth_l1_cm,
+        depth_l1_cm: depth_split.map(|s| s.l1_cm),
         depth_split,
     })
 }
