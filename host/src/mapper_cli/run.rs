@@ -193,7 +193,11 @@ where
             let dt = t0.elapsed().as_secs_f64();
             let seen = Seen::of(mapper, &poses);
             rec.record(mapper.backend_mut(), r, &frame, dt, progress, &seen)?;
-            priors.after_update(mapper, cfg)?;
+            if let Some(st) = priors.after_update(mapper, cfg)? {
+                if std::env::var_os("HIMAP_PLANES_LOG").is_some() {
+                    eprintln!("frame {}: {}", frame.index, st.describe());
+                }
+            }
         }
         progress.pb.inc(1);
         last_frame = Some(frame);
