@@ -1358,10 +1358,17 @@ mod tests {
         assert!(label2[10] == 0 && label2[11] == 0 && label2[12] == 0);
     }
 
-    /// The defaults pass the settings check; each bad setting is an error naming it.
+    /// The defaults pass the settings check; each bad setting is an error naming it; the
+    /// sources read from TOML by name.
     #[test]
     fn settings_are_checked() {
         assert!(PlaneSection::default().validate().is_ok());
+        let p: PlaneSection = toml::from_str("online = \"floor\"\nrefine = \"both\"").unwrap();
+        assert_eq!(
+            (p.online, p.refine),
+            (PriorSource::Floor, PriorSource::Both)
+        );
+        assert!(toml::from_str::<PlaneSection>("online = \"ceiling\"").is_err());
         let bad: [fn(&mut PlaneSection); 9] = [
             |p| p.floor_tol = 0.0,
             |p| p.occluded_inliers = -0.1,
