@@ -721,51 +721,19 @@ where
         _ => None,
     };
     for h in held {
+        let border = |b: &mut B, st: &mut PlaneStats| {
+            frame_prior(b, &k, h.slot, &h.pose, h.id, cfg, max_depth, st)
+        };
+        let walls = |b: &mut B, st: &mut PlaneStats| {
+            floor_wall_prior(b, &k, h.slot, &h.pose, h.id, cfg, max_depth, floor, st)
+        };
         let prior = match source {
-            PriorSource::Border => frame_prior(
-                mapper.backend_mut(),
-                &k,
-                h.slot,
-                &h.pose,
-                h.id,
-                cfg,
-                max_depth,
-                &mut stats,
-            )?,
-            PriorSource::Floor => floor_wall_prior(
-                mapper.backend_mut(),
-                &k,
-                h.slot,
-                &h.pose,
-                h.id,
-                cfg,
-                max_depth,
-                floor,
-                &mut stats,
-            )?,
+            PriorSource::Border => border(mapper.backend_mut(), &mut stats)?,
+            PriorSource::Floor => walls(mapper.backend_mut(), &mut stats)?,
             PriorSource::Both => {
                 let (mut fs, mut bs) = (PlaneStats::default(), PlaneStats::default());
-                let mut p = floor_wall_prior(
-                    mapper.backend_mut(),
-                    &k,
-                    h.slot,
-                    &h.pose,
-                    h.id,
-                    cfg,
-                    max_depth,
-                    floor,
-                    &mut fs,
-                )?;
-                let b = frame_prior(
-                    mapper.backend_mut(),
-                    &k,
-                    h.slot,
-                    &h.pose,
-                    h.id,
-                    cfg,
-                    max_depth,
-                    &mut bs,
-                )?;
+                let mut p = walls(mapper.backend_mut(), &mut fs)?;
+                let b = border(mapper.backend_mut(), &mut bs)?;
                 for (x, y) in p.iter_mut().zip(&b) {
                     if *x == 0.0 {
                         *x = *y;
@@ -1201,7 +1169,8 @@ fn floor_wall_targets(
         }
     }
     let out = render(&rays)?;
-    let ax = crate::config::up_axis(pose);
+    // the floor's axes from `up` itself (a frame rolled past 45 degrees snaps to another axis)
+    let ax = (0..3).find(|&a| up[a] != 0.0).unwrap_or(1);
     let (a0, a1) = ((ax + 1) % 3, (ax + 2) % 3);
     let o = f64x3(pose.origin());
     let oh = dot3(up, o);
